@@ -1,0 +1,109 @@
+"""Classic simplifiers: seeded random, voxel (nearest-to-centre real point) and 3-D farthest point sampling."""
+from __future__ import annotations
+
+import fpsample
+import numpy as np
+
+from model.selection import Selection, Tile
+
+FPS_OVERSHOOT = 1.1   # extra samples asked of FPS over core+halo so enough of them land in the core
+VOXEL_CELL_TOLERANCE = 1e-4  # stop bisecting the cell size once the bracket is this tight (relative)
+
+
+def random_simplify(tile: Tile, budget: int) -> Selection:
+    """A seeded uniform random sample of the core points; any prefix is itself uniform."""
+    core = np.flatnonzero(tile.core)
+    order = np.random.default_rng(tile.seed).permutation(core)
+    return Selection.of(tile, order[:budget])
+
+
+def fps_simplify(tile: Tile, budget: int) -> Selection:
+    """Farthest point sampling over core+halo (so spacing continues across seams), keeping core picks.
+
+    fpsample's bucket FPS returns points in FPS order; the halo share of the samples is estimated and
+    the run repeated with more samples if too few core points came out.
+    """
+    budget = min(budget, tile.core_count)
+    if budget == 0:
+        return Selection.of(tile, np.empty(0, dtype=np.int64))
+    n = len(tile.xyz)
+    core = np.flatnonzero(tile.core)
+    start = int(core[np.random.default_rng(tile.seed).integers(len(core))])
+    points = np.ascontiguousarray(tile.xyz, dtype=np.float32)
+    wanted = budget * n / len(core) * FPS_OVERSHOOT
+    while True:
+        samples = min(n, int(np.ceil(wanted)) + 1)
+        order = _fps_order(points, samples, start)
+        picks = order[tile.core[order]]
+        if len(picks) >= budget or samples == n:
+            return Selection.of(tile, picks[:budget])
+        wanted = samples * 1.5 * budget / max(len(picks), 1)
+
+
+def _fps_order(points: np.ndarray, samples: int, start: int) -> np.ndarray:
+    """Indices of `samples` points in farthest-point order from `start` (all points, in FPS order, if samples == n)."""
+    if samples <= 1:
+        return np.array([start], dtype=np.int64)
+    height = int(np.clip(np.log2(max(len(points), 2)) - 8, 3, 9))  # bucket size 2**h, per fpsample's advice
+    return fpsample.bucket_fps_kdline_sampling(points, samples, h=height, start_idx=start).astype(np.int64)
+
+
+def voxel_simplify(tile: Tile, budget: int) -> Selection:
+    """One real point per voxel (the one nearest the voxel centre), with the cell size searched so the
+    voxel count just meets the budget; voxels are aligned to the scan origin so tiles share one grid.
+
+    Representatives come in seeded random order and are trimmed to the budget; if even the finest
+    grid gives too few (duplicate points), the rest of the core tops the count up in random order.
+    """
+    budget = min(budget, tile.core_count)
+    core = np.flatnonzero(tile.core)
+    if budget == 0:
+        return Selection.of(tile, np.empty(0, dtype=np.int64))
+    points = tile.xyz[core] + tile.centre
+    cell = _cell_for_budget(points, budget)
+    reps = core[_voxel_representatives(points, cell)]
+    rng = np.random.default_rng(tile.seed)
+    order = rng.permutation(reps)
+    if len(order) < budget:
+        rest = np.setdiff1d(core, reps, assume_unique=True)
+        order = np.concatenate([order, rng.permutation(rest)])
+    return Selection.of(tile, order[:budget])
+
+
+def _voxel_keys(points: np.ndarray, cell: float) -> np.ndarray:
+    """One int64 key per point naming its voxel (cells counted from the points' minimum corner)."""
+    ijk = np.floor(points / cell).astype(np.int64)
+    ijk -= ijk.min(axis=0)
+    span = ijk.max(axis=0) + 1
+    return (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
+
+
+def _voxel_count(points: np.ndarray, cell: float) -> int:
+    return len(np.unique(_voxel_keys(points, cell)))
+
+
+def _cell_for_budget(points: np.ndarray, budget: int) -> float:
+    """The largest cell (to bisection precision) whose occupied-voxel count is at least the budget."""
+    extent = float(np.ptp(points, axis=0).max())
+    finest = max(extent / 2**20, 1e-6)  # keeps keys within int64 and below the coordinates' precision
+    if extent == 0 or _voxel_count(points, finest) < budget:
+        return finest
+    low, high = finest, max(extent, finest) * 2
+    while high / low > 1 + VOXEL_CELL_TOLERANCE:
+        mid = float(np.sqrt(low * high))
+        if _voxel_count(points, mid) >= budget:
+            low = mid
+        else:
+            high = mid
+    return low
+
+
+def _voxel_representatives(points: np.ndarray, cell: float) -> np.ndarray:
+    """Index of the point nearest its voxel centre, one per occupied voxel, in voxel-key order."""
+    keys = _voxel_keys(points, cell)
+    centres = (np.floor(points / cell) + 0.5) * cell
+    distance = np.einsum("ij,ij->i", points - centres, points - centres)
+    order = np.lexsort((distance, keys))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = keys[order][1:] != keys[order][:-1]
+    return order[first]

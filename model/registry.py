@@ -1,0 +1,20 @@
+"""Method names to simplifier callables: the one switch behind `--method`."""
+from __future__ import annotations
+
+from model.baselines import fps_simplify, random_simplify, voxel_simplify
+from model.selection import Simplifier
+
+_SIMPLIFIERS: dict[str, Simplifier] = {
+    "fps": fps_simplify,
+    "voxel": voxel_simplify,
+    "random": random_simplify,
+}
+METHODS = tuple(_SIMPLIFIERS)
+
+
+def get_simplifier(method: str) -> Simplifier:
+    """The simplifier registered under `method` (KeyError names the known ones)."""
+    try:
+        return _SIMPLIFIERS[method]
+    except KeyError:
+        raise KeyError(f"unknown method {method!r}; known: {', '.join(METHODS)}") from None

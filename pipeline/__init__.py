@@ -1,0 +1,24 @@
+"""Feature-preserving simplification of large LiDAR scans; `pipeline.run(...)` mirrors `pipeline run`."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Sequence
+
+from pipeline.config import RunConfig, build_config
+from pipeline.errors import PipelineError
+from pipeline.runner import RunReport, run_scan
+
+__all__ = ["PipelineError", "RunConfig", "RunReport", "run"]
+
+
+def run(inputs: str | Path | Sequence[str | Path], output: str | Path | None = None, *, ratio: float,
+        config: str | None = None, overwrite: bool = False, scratch: str | Path | None = None,
+        progress: bool = False, **settings: Any) -> RunReport:
+    """Simplify a scan (one file or several that form one scan) to `output` at `ratio`.
+
+    `config` names a preset (`default`, `toronto3d`, `airborne`) or a TOML file; keyword settings
+    (method, tile_size, overlap, workers, memory_limit, seed, ...) override it, as CLI flags do.
+    """
+    paths = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
+    return run_scan(paths, output, build_config(config, ratio=ratio, **settings), overwrite=overwrite,
+                        scratch=scratch, show_progress=progress)

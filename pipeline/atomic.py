@@ -1,0 +1,35 @@
+"""Write-then-rename, so a failed or killed run never leaves a half-written file under the final name."""
+from __future__ import annotations
+
+import os
+import shutil
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Iterator
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
+
+
+@contextmanager
+def atomic_output(final: Path) -> Iterator[Path]:
+    """Yield a hidden temporary path beside `final`; on success it replaces `final`, on error it is removed."""
+    temporary = final.parent / f".{final.name}.tmp-{os.getpid()}"
+    _remove(temporary)
+    try:
+        yield temporary
+        if final.is_dir() and not final.is_symlink():
+            # a directory (zarr store) cannot be replaced in one step: move the old one aside first
+            old = final.parent / f".{final.name}.old-{os.getpid()}"
+            os.replace(final, old)
+            os.replace(temporary, final)
+            _remove(old)
+        else:
+            os.replace(temporary, final)
+    except BaseException:
+        _remove(temporary)
+        raise

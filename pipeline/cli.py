@@ -1,0 +1,113 @@
+"""The `pipeline` command line: run, info, demo. Errors print one line and exit non-zero."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import click
+
+import configs
+from pipeline.config import METHODS, build_config
+from pipeline.errors import PipelineError
+from pipeline.info import format_summary, summarize
+
+EXIT_ERROR = 2
+
+
+class OneLineErrors(click.Group):
+    """Turns PipelineError (and lazrs panics) into `pipeline: error: ...` and exit code 2, no traceback."""
+
+    def invoke(self, ctx: click.Context):
+        try:
+            return super().invoke(ctx)
+        except PipelineError as exc:
+            click.echo(f"pipeline: error: {exc}", err=True)
+            sys.exit(EXIT_ERROR)
+
+
+@click.group(cls=OneLineErrors, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
+@click.version_option(package_name="lidar-simplify")
+def cli() -> None:
+    """Simplify very large LiDAR scans while keeping edges, corners, poles and facades.
+
+    \b
+    Examples:
+      pipeline run scan.laz --ratio 0.1 -o scan_small.laz
+      pipeline run part1.laz part2.laz --ratio 0.05 -o merged.zarr --workers 4
+      pipeline info scan.laz --json
+      pipeline demo
+    """
+
+
+@cli.command("run")
+@click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--ratio", "-r", type=float, required=True, help="Fraction of points to keep, in (0, 1].")
+@click.option("--output", "-o", type=click.Path(path_type=Path), default=None,
+              help="Output file: .las, .laz or .zarr. [default: ./<input>.simplified.laz]")
+@click.option("--method", "-m", type=click.Choice(METHODS), default=None, help="Simplifier. [default: fps]")
+@click.option("--tile-size", type=float, default=None, help="Nominal tile edge in metres. [default: 50]")
+@click.option("--overlap", type=float, default=None, help="Halo width around each tile in metres. [default: 2]")
+@click.option("--max-tile-points", type=int, default=None, help="Split tiles with more core points. [default: 200000]")
+@click.option("--seam-tolerance", type=float, default=None,
+              help="Kept points of different tiles closer than this (m) keep one. [default: 0.01]")
+@click.option("--workers", "-w", type=int, default=None, help="Dask worker processes. [default: 2]")
+@click.option("--memory-limit", default=None, help="Memory limit per worker, e.g. 2GB. [default: 2GB]")
+@click.option("--config", "-c", "config", default=None,
+              help=f"Preset ({', '.join(configs.preset_names())}) or TOML file; flags override it.")
+@click.option("--seed", type=int, default=None, help="Seed for the random choices. [default: 0]")
+@click.option("--scratch", type=click.Path(path_type=Path), default=None,
+              help="Folder for temporary tiles. [default: the output's folder]")
+@click.option("--overwrite", is_flag=True, help="Replace an existing output.")
+@click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
+def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, method: str | None,
+                tile_size: float | None, overlap: float | None, max_tile_points: int | None,
+                seam_tolerance: float | None, workers: int | None, memory_limit: str | None, config: str | None,
+                seed: int | None, scratch: Path | None, overwrite: bool, quiet: bool) -> None:
+    """Simplify INPUTS (LAS/LAZ/COPC/PLY files that together form one scan) to one output."""
+    from pipeline.runner import run_scan
+
+    settings = build_config(config, ratio=ratio, method=method, tile_size=tile_size, overlap=overlap,
+                            max_tile_points=max_tile_points, seam_tolerance=seam_tolerance, workers=workers,
+                            memory_limit=memory_limit, seed=seed)
+    report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch, show_progress=not quiet)
+    if not quiet:
+        rate = report.input_points / max(report.seconds, 1e-9)
+        click.echo(f"{report.output}: {report.output_points:,} of {report.input_points:,} points "
+                   f"({report.tiles} tiles, {report.seconds:.1f} s, {rate:,.0f} points/s)")
+
+
+@cli.command("info")
+@click.argument("input_file", metavar="INPUT", type=click.Path(path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
+def info_command(input_file: Path, as_json: bool) -> None:
+    """Summarise INPUT: points, LAS version, point format, bounds, scale/offset, CRS, dimensions."""
+    summary = summarize(input_file)
+    click.echo(json.dumps(summary, indent=2) if as_json else format_summary(summary))
+
+
+@cli.command("demo")
+@click.option("--out-dir", type=click.Path(path_type=Path), default=Path("demo"), show_default=True,
+              help="Folder for the demo scan and its simplification.")
+@click.option("--points", type=int, default=1_500_000, show_default=True, help="Size of the simulated scan.")
+@click.option("--ratio", type=float, default=0.1, show_default=True, help="Fraction of points to keep.")
+@click.option("--workers", "-w", type=int, default=None, help="Dask worker processes. [default: 2]")
+def demo_command(out_dir: Path, points: int, ratio: float, workers: int | None) -> None:
+    """Simulate a mobile-LiDAR street scan and simplify it: the built-in end-to-end example."""
+    from pipeline.runner import run_scan
+    from pipeline.simulate import write_street_scan
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    scan = out_dir / "demo_street.laz"
+    if not scan.exists():
+        click.echo(f"simulating {points:,} points of street scan -> {scan}")
+        write_street_scan(scan, n_points=points, seed=0)
+    settings = build_config("toronto3d", ratio=ratio, workers=workers)
+    report = run_scan([scan], out_dir / "demo_street.simplified.laz", settings, overwrite=True)
+    click.echo(f"{report.output}: {report.output_points:,} of {report.input_points:,} points "
+               f"({report.tiles} tiles, {report.seconds:.1f} s)")
+
+
+def main() -> None:
+    """Console-script entry point."""
+    cli(prog_name="pipeline")

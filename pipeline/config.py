@@ -1,0 +1,86 @@
+"""Run settings: shipped defaults, then a preset or TOML file, then explicit flags (flags win)."""
+from __future__ import annotations
+
+import math
+import re
+import tomllib
+from dataclasses import dataclass, fields, replace
+from pathlib import Path
+from typing import Any
+
+import configs
+from pipeline.errors import PipelineError
+
+METHODS = ("fps", "voxel", "random")
+_SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([KMGT]i?B|B)?\s*$", re.IGNORECASE)
+_UNITS = {"b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
+          "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40}
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """Everything one `pipeline run` needs besides its inputs and output path."""
+
+    ratio: float = 0.1
+    method: str = "fps"
+    tile_size: float = 50.0
+    overlap: float = 2.0
+    max_tile_points: int = 200_000
+    seam_tolerance: float = 0.01
+    workers: int = 2
+    memory_limit: str = "2GB"
+    chunk_points: int = 1_000_000
+    seed: int = 0
+
+    def validated(self) -> "RunConfig":
+        """Return self after checking every value, raising PipelineError naming the bad one."""
+        if not (isinstance(self.ratio, (int, float)) and math.isfinite(self.ratio) and 0 < self.ratio <= 1):
+            raise PipelineError(f"--ratio must be in (0, 1], got {self.ratio!r}")
+        if self.method not in METHODS:
+            raise PipelineError(f"--method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        for name in ("tile_size", "overlap", "seam_tolerance"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0) or (name == "tile_size" and value <= 0):
+                raise PipelineError(f"--{name.replace('_', '-')} must be a positive number of metres, got {value!r}")
+        for name in ("max_tile_points", "workers", "chunk_points"):
+            if int(getattr(self, name)) < 1:
+                raise PipelineError(f"{name.replace('_', '-')} must be at least 1, got {getattr(self, name)!r}")
+        parse_size(self.memory_limit)
+        return self
+
+
+def parse_size(text: str) -> int:
+    """Bytes in a size such as '2GB', '512MiB' or '1500000000' (what Dask's memory_limit accepts)."""
+    match = _SIZE.match(str(text))
+    if not match:
+        raise PipelineError(f"--memory-limit must look like 2GB or 512MiB, got {text!r}")
+    return int(float(match.group(1)) * _UNITS[(match.group(2) or "b").lower()])
+
+
+def load_settings(config: str | None) -> dict[str, Any]:
+    """The [run] table of a preset name (`default`, `toronto3d`, `airborne`) or a TOML file path."""
+    if config is None:
+        config = "default"
+    path = configs.preset_path(config) or Path(config)
+    if not path.is_file():
+        raise PipelineError(f"{config}: no such config file or preset (presets: {', '.join(configs.preset_names())})")
+    try:
+        table = tomllib.loads(path.read_text()).get("run", {})
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise PipelineError(f"{path}: not a valid TOML config ({exc})") from None
+    known = {f.name for f in fields(RunConfig)}
+    unknown = sorted(set(table) - known)
+    if unknown:
+        raise PipelineError(f"{path}: unknown setting(s) {', '.join(unknown)} in [run]")
+    return table
+
+
+def build_config(config: str | None = None, **overrides: Any) -> RunConfig:
+    """Defaults, then the preset or file, then the non-None overrides; validated."""
+    base = RunConfig()
+    settings = load_settings(config)
+    settings.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return replace(base, **settings).validated()
+    except TypeError as exc:
+        raise PipelineError(f"bad setting: {exc}") from None

@@ -1,0 +1,145 @@
+"""`pipeline run`: read -> plan -> bucket -> simplify tiles on Dask -> stitch -> write, in bounded memory."""
+from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+import time
+from dataclasses import dataclass
+from importlib.metadata import version
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import numpy as np
+
+from pipeline.config import RunConfig
+from pipeline.crs import crs_wkt
+from pipeline.errors import PipelineError
+from pipeline.execute import run_jobs
+from pipeline.scan import Scan
+from pipeline.tile_task import TileJob
+from pipeline.writers import OUTPUT_SUFFIXES, OutputMeta, TilePart, write_output
+from tiling.budgets import target_count, tile_budgets
+from tiling.bucket import bucket_points
+from tiling.plan import DensityGrid, TilePlan, plan_tiles
+from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
+from tiling.store import TileStore
+
+BUCKET_BUFFER_BYTES = 256 * 2**20  # rows held in memory before the bucketing pass flushes to disk
+RESERVE_SHARE = 0.05               # extra picks per tile, in priority order, for the seam top-up
+RESERVE_MIN = 16
+
+
+@dataclass(frozen=True)
+class RunReport:
+    """What a run did: where it wrote, how many points in and out, over how many tiles, how long."""
+
+    output: Path
+    input_points: int
+    output_points: int
+    tiles: int
+    seconds: float
+
+
+def default_output(first_input: Path) -> Path:
+    """`<stem>.simplified.<las|laz>` in the current directory (inputs may sit on read-only storage)."""
+    stem = first_input.name
+    for suffix in (".copc.laz", ".laz", ".las", ".ply"):
+        if stem.lower().endswith(suffix):
+            stem = stem[: -len(suffix)]
+            break
+    suffix = ".las" if first_input.suffix.lower() == ".las" else ".laz"
+    return Path.cwd() / f"{stem}.simplified{suffix}"
+
+
+def check_output(output: Path, overwrite: bool) -> None:
+    """Refuse an unsupported suffix, an existing output without overwrite, or an unwritable folder."""
+    if output.suffix.lower() not in OUTPUT_SUFFIXES:
+        raise PipelineError(f"{output}: unsupported output type (use .las, .laz or .zarr)")
+    if output.exists() and not overwrite:
+        raise PipelineError(f"{output}: already exists (pass --overwrite to replace it)")
+    if not output.parent.is_dir():
+        raise PipelineError(f"{output.parent}: output folder does not exist")
+    if not os.access(output.parent, os.W_OK):
+        raise PipelineError(f"{output.parent}: output folder is not writable")
+
+
+def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: RunConfig, overwrite: bool = False,
+        scratch: str | Path | None = None, show_progress: bool = True) -> RunReport:
+    """Simplify one scan (one or more files) to `output`; the Python twin of `pipeline run`."""
+    started = time.perf_counter()
+    config = config.validated()
+    scan = Scan(inputs)
+    output = Path(output) if output is not None else default_output(scan.paths[0])
+    check_output(output, overwrite)
+    mins, maxs = scan.bounds
+    grid = DensityGrid.covering(mins, maxs, config.tile_size)
+    counts = grid.count(chunk.xyz for chunk in scan.chunks(config.chunk_points))
+    total = int(counts.sum())
+    target = target_count(config.ratio, total)
+    if target == 0:
+        raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {total} points")
+    plan = plan_tiles(grid, counts, config.max_tile_points)
+    scratch_dir = Path(tempfile.mkdtemp(prefix=f".{output.name}.scratch-", dir=scratch or output.parent))
+    try:
+        store = TileStore.create(scratch_dir / "tiles.zarr", scan.dtype,
+                                 {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
+        core_counts = bucket_points(((c.records, c.xyz) for c in scan.chunks(config.chunk_points)),
+                                    plan, config.overlap, store, BUCKET_BUFFER_BYTES)
+        budgets = tile_budgets(core_counts, config.ratio)
+        jobs = make_jobs(store, scratch_dir, core_counts, budgets, config)
+        run_jobs(jobs, config.workers, config.memory_limit, show_progress)
+        parts = stitched_parts(store, plan, {job.tile_id: job for job in jobs}, budgets, config.seam_tolerance, scan)
+        meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], config.ratio, config.method,
+                          version("lidar-simplify"))
+        written = write_output(output, scan.header, target, parts, meta)
+    finally:
+        shutil.rmtree(scratch_dir, ignore_errors=True)
+    return RunReport(output, total, written, len(jobs), time.perf_counter() - started)
+
+
+def make_jobs(store: TileStore, scratch_dir: Path, core_counts: np.ndarray, budgets: np.ndarray,
+              config: RunConfig) -> list[TileJob]:
+    """One job per tile with a non-zero budget, biggest tiles first so the slowest start early."""
+    jobs = []
+    for tile_id in np.argsort(-core_counts, kind="stable"):
+        budget = int(budgets[tile_id])
+        if budget == 0:
+            continue
+        reserve = min(int(core_counts[tile_id]) - budget, max(RESERVE_MIN, int(np.ceil(RESERVE_SHARE * budget))))
+        jobs.append(TileJob(str(store.path), str(scratch_dir / f"tile-{tile_id}.npz"), int(tile_id), budget,
+                            reserve, config.method, config.seed))
+    return jobs
+
+
+def _load_result(job: TileJob) -> tuple[np.ndarray, np.ndarray]:
+    with np.load(job.result_path) as result:
+        return result["rows"], result["xyz"]
+
+
+def stitched_parts(store: TileStore, plan: TilePlan, jobs: dict[int, TileJob], budgets: np.ndarray,
+                   tolerance: float, scan: Scan) -> Iterator[TilePart]:
+    """Each tile's final points in tile order, after the seam pass; one tile in memory at a time."""
+    bands, candidate_counts = [], np.zeros(len(plan.tiles), dtype=np.int64)
+    for tile_id, job in sorted(jobs.items()):
+        _, xyz = _load_result(job)
+        candidate_counts[tile_id] = len(xyz)
+        near = np.flatnonzero(band_mask(xyz, plan.bounds(tile_id), tolerance))
+        bands.append(SeamBand(tile_id, near, xyz[near]))
+    rejections = resolve_seams(bands, candidate_counts, budgets, tolerance)
+    for tile_id, job in sorted(jobs.items()):
+        rows, xyz = _load_result(job)
+        rejected = rejections.get(tile_id, np.empty(0, dtype=np.int64))
+        chosen = first_accepted(len(rows), int(budgets[tile_id]), rejected)
+        records = store.load(tile_id).records[rows[chosen]]
+        yield TilePart(tile_id, plan.bounds(tile_id), _moved_to(records, xyz[chosen], scan))
+
+
+def _moved_to(records: np.ndarray, xyz: np.ndarray, scan: Scan) -> np.ndarray:
+    """Records whose X/Y/Z follow xyz where a method refined the position (attributes stay the source's)."""
+    moved = np.any(xyz != scan.decode_xyz(records), axis=1)
+    if moved.any():
+        ints = np.rint((xyz[moved] - scan.offsets) / scan.scales).astype(np.int32)
+        for axis, name in enumerate("XYZ"):
+            records[name][moved] = ints[:, axis]
+    return records

@@ -1,0 +1,112 @@
+"""One logical scan from one or more input files: a common record layout and a chunk stream."""
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator, Sequence
+
+import laspy
+import numpy as np
+
+from pipeline.errors import PipelineError
+from pipeline.las_source import LasSource
+from pipeline.ply_source import PlySource
+
+LAS_SUFFIXES = (".las", ".laz")
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """Consecutive points of the scan: raw records in the output layout and their float64 xyz."""
+
+    records: np.ndarray
+    xyz: np.ndarray
+
+
+def open_source(path: Path) -> LasSource | PlySource:
+    """A reader for one file, chosen by suffix (COPC `.copc.laz` is LAZ)."""
+    suffix = path.suffix.lower()
+    if suffix in LAS_SUFFIXES:
+        return LasSource(path)
+    if suffix == ".ply":
+        return PlySource(path)
+    raise PipelineError(f"{path}: unsupported input type {suffix or '(none)'} (expected .las, .laz, .copc.laz or .ply)")
+
+
+def output_header(template: laspy.LasHeader) -> laspy.LasHeader:
+    """A copy of the first input's header without COPC records, which would be invalid in a plain LAS/LAZ."""
+    header = copy.deepcopy(template)
+    for records in (header.vlrs, header.evlrs or []):
+        records[:] = [v for v in records if v.user_id != "copc"]
+    return header
+
+
+class Scan:
+    """The inputs as one point stream in the first input's point format, scale and offset."""
+
+    def __init__(self, paths: Sequence[str | Path]) -> None:
+        if not paths:
+            raise PipelineError("no input files given")
+        self.sources = [open_source(Path(p)) for p in paths]
+        first = self.sources[0]
+        self.header = output_header(first.header)
+        self.point_format = self.header.point_format
+        self.dtype = self.point_format.dtype()
+        self.scales = np.asarray(self.header.scales, dtype=np.float64)
+        self.offsets = np.asarray(self.header.offsets, dtype=np.float64)
+        for source in self.sources[1:]:
+            fmt = source.header.point_format
+            if fmt.id != self.point_format.id or fmt.dtype() != self.dtype:
+                raise PipelineError(
+                    f"{source.path}: point format {fmt.id} with dimensions {list(fmt.dimension_names)} differs from "
+                    f"{first.path}'s format {self.point_format.id}; convert the inputs to one format first")
+        if self.point_count == 0:
+            raise PipelineError(f"{', '.join(str(s.path) for s in self.sources)}: contains no points")
+
+    @property
+    def paths(self) -> list[Path]:
+        """The input files in stream order."""
+        return [s.path for s in self.sources]
+
+    @property
+    def point_count(self) -> int:
+        """Total points the headers declare."""
+        return sum(s.point_count for s in self.sources)
+
+    @property
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Union of the headers' min and max xyz."""
+        mins = np.min([s.header.mins for s in self.sources], axis=0)
+        maxs = np.max([s.header.maxs for s in self.sources], axis=0)
+        return np.asarray(mins, dtype=np.float64), np.asarray(maxs, dtype=np.float64)
+
+    def decode_xyz(self, records: np.ndarray) -> np.ndarray:
+        """Float64 coordinates of raw records on this scan's grid."""
+        ints = np.column_stack([records["X"], records["Y"], records["Z"]]).astype(np.float64)
+        return ints * self.scales + self.offsets
+
+    def _to_grid(self, records: np.ndarray, source: LasSource | PlySource) -> np.ndarray:
+        """Re-quantise another file's X/Y/Z integers onto the first file's scale and offset."""
+        scales = np.asarray(source.header.scales, dtype=np.float64)
+        offsets = np.asarray(source.header.offsets, dtype=np.float64)
+        if np.array_equal(scales, self.scales) and np.array_equal(offsets, self.offsets):
+            return records
+        records = records.copy()
+        for axis, name in enumerate("XYZ"):
+            value = records[name].astype(np.float64) * scales[axis] + offsets[axis]
+            ints = np.rint((value - self.offsets[axis]) / self.scales[axis])
+            if np.abs(ints).max(initial=0) > np.iinfo(np.int32).max:
+                raise PipelineError(f"{source.path}: coordinates do not fit {self.sources[0].path}'s scale/offset")
+            records[name] = ints.astype(np.int32)
+        return records
+
+    def chunks(self, size: int) -> Iterator[Chunk]:
+        """The whole scan in order, `size` points at most per chunk, with a finiteness check."""
+        for source in self.sources:
+            for raw in source.chunks(size):
+                records = self._to_grid(raw, source)
+                xyz = self.decode_xyz(records)
+                if not np.isfinite(xyz).all():
+                    raise PipelineError(f"{source.path}: NaN or infinite coordinates")
+                yield Chunk(records, xyz)
