@@ -44,7 +44,8 @@ def _fps_order(points: np.ndarray, samples: int, start: int) -> np.ndarray:
     """Indices of `samples` points in farthest-point order from `start` (all points, in FPS order, if samples == n)."""
     if samples <= 1:
         return np.array([start], dtype=np.int64)
-    height = int(np.clip(np.log2(max(len(points), 2)) - 8, 3, 9))  # bucket size 2**h, per fpsample's advice
+    levels = int(np.log2(len(points)))
+    height = max(1, min(levels, int(np.clip(levels - 8, 3, 9))))  # bucket size 2**h <= n, per fpsample's advice
     return fpsample.bucket_fps_kdline_sampling(points, samples, h=height, start_idx=start).astype(np.int64)
 
 

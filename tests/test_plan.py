@@ -1,0 +1,65 @@
+"""Tile plan and budgets: the cores partition the scan, dense tiles split, budgets sum exactly."""
+import numpy as np
+import pytest
+
+from tiling.budgets import target_count, tile_budgets
+from tiling.plan import DensityGrid, plan_tiles
+
+
+def clustered_points(n: int, seed: int = 0) -> np.ndarray:
+    """Uniform background plus one very dense cluster, so some tiles must split."""
+    rng = np.random.default_rng(seed)
+    background = rng.uniform([0, 0, 0], [200, 120, 10], size=(n // 2, 3))
+    cluster = rng.normal([50, 60, 2], [3, 3, 1], size=(n - n // 2, 3))
+    return np.vstack([background, cluster])
+
+
+def test_every_point_in_exactly_one_core_even_on_edges():
+    xyz = clustered_points(50_000)
+    grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=25)
+    # points exactly on cell and tile boundaries, and on the far edges of the extent
+    edges = np.array([[grid.origin[0] + k * grid.cell, grid.origin[1] + 3 * grid.cell, 0] for k in range(0, 40)])
+    corner = np.array([xyz.max(0), xyz.min(0)])
+    xyz = np.vstack([xyz, edges, corner])
+    plan = plan_tiles(grid, grid.count([xyz]), max_points=2_000)
+    owner = plan.tile_of(xyz)
+    assert (owner >= 0).all()
+    counts = np.bincount(owner, minlength=len(plan.tiles))
+    assert counts.sum() == len(xyz)
+    assert [t.count for t in plan.tiles] == counts.tolist()
+    # the owner's half-open rectangle contains the point (clipped at the far edges of the extent)
+    b = plan.all_bounds()[owner]
+    inside = (xyz[:, 0] >= b[:, 0]) & (xyz[:, 1] >= b[:, 1]) & ((xyz[:, 0] < b[:, 2]) | np.isclose(xyz[:, 0], xyz[:, 0].max()))
+    assert inside.all()
+
+
+def test_dense_tiles_split_until_under_budget():
+    xyz = clustered_points(80_000)
+    grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=50)
+    plan = plan_tiles(grid, grid.count([xyz]), max_points=3_000)
+    single_cell = [(t.i1 - t.i0) * (t.j1 - t.j0) == 1 for t in plan.tiles]
+    assert all(t.count <= 3_000 or one for t, one in zip(plan.tiles, single_cell))
+    assert len(plan.tiles) > (200 // 50 + 1) * (120 // 50 + 1)  # more tiles than the nominal grid
+    assert all(t.count > 0 for t in plan.tiles)
+
+
+def test_all_identical_points_make_one_tile():
+    xyz = np.tile([[10.0, 20.0, 3.0]], (500, 1))
+    grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=50)
+    plan = plan_tiles(grid, grid.count([xyz]), max_points=100)
+    assert len(plan.tiles) == 1 and plan.tiles[0].count == 500
+
+
+@pytest.mark.parametrize("ratio", [1.0, 0.5, 0.1, 0.05, 0.013, 1e-4])
+def test_budgets_sum_to_rounded_target(ratio):
+    counts = np.random.default_rng(1).integers(0, 5_000, size=97)
+    budgets = tile_budgets(counts, ratio)
+    assert budgets.sum() == target_count(ratio, int(counts.sum()))
+    assert (budgets <= counts).all() and (budgets >= 0).all()
+    assert (np.abs(budgets - ratio * counts) < 1 + 1e-9).all()
+
+
+def test_target_rounds_half_up():
+    assert target_count(0.5, 3) == 2
+    assert target_count(0.1, 15) == 2
+    assert target_count(1.0, 7) == 7
