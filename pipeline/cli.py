@@ -111,3 +111,7 @@ def demo_command(out_dir: Path, points: int, ratio: float, workers: int | None) 
 def main() -> None:
     """Console-script entry point."""
     cli(prog_name="pipeline")
+
+
+if __name__ == "__main__":
+    main()

@@ -2,6 +2,10 @@
 from __future__ import annotations
 
 import copy
+import os
+import sys
+import tempfile
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
@@ -15,6 +19,29 @@ def describe_failure(path: Path, exc: BaseException) -> PipelineError:
     """One line naming the file and what laspy/lazrs said (PanicException included)."""
     detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
     return PipelineError(f"{path}: cannot read LAS/LAZ data: {detail}")
+
+
+@contextmanager
+def native_panics_silenced() -> Iterator[None]:
+    """Send fd 2 to a temporary file while lazrs decodes: a Rust panic prints a many-line report there
+    before laspy raises PanicException. The report is dropped on a panic and replayed otherwise."""
+    sys.stderr.flush()
+    saved = os.dup(2)
+    panicked = False
+    with tempfile.TemporaryFile() as capture:
+        os.dup2(capture.fileno(), 2)
+        try:
+            yield
+        except BaseException as exc:
+            panicked = type(exc).__name__ == "PanicException"
+            raise
+        finally:
+            sys.stderr.flush()
+            os.dup2(saved, 2)
+            os.close(saved)
+            if not panicked:
+                capture.seek(0)
+                sys.stderr.write(capture.read().decode(errors="replace"))
 
 
 class LasSource:
@@ -41,7 +68,7 @@ class LasSource:
         """Raw point records (laspy's structured dtype) in file order, at most `size` at a time."""
         done = 0
         try:
-            with laspy.open(self.path) as reader:
+            with native_panics_silenced(), laspy.open(self.path) as reader:
                 for record in reader.chunk_iterator(size):
                     done += len(record)
                     yield record.array

@@ -172,13 +172,14 @@ def _ellipsoid(r: _Rays, c, s):
     return np.where(ok, (-b - root) / a, np.inf), np.where(ok, (-b + root) / a, -np.inf)
 
 
-def _glass(t, rng, glass: _Surf, inner: _Surf, reg: _Registry, depth: float):
-    """Split pulses at glass into pane returns, returns from behind, and no return."""
+def _glass(t, extra, rng, glass: _Surf, inner: _Surf, reg: _Registry):
+    """Split pulses reaching glass at t into pane returns, returns from `extra` behind it,
+    and lost pulses (no return, but nothing behind is seen either)."""
     u = rng.random(t.size)
     t = t.copy()
     surf = np.full(t.size, reg(glass), np.int32)
     behind = (u >= _P_GLASS) & (u < _P_GLASS + _P_INNER)
-    t[behind] += rng.uniform(0.3, depth, int(behind.sum()))
+    t[behind] += extra[behind]
     surf[behind] = reg(inner)
     surf[u >= _P_GLASS + _P_INNER] = 0
     return t, surf
@@ -268,7 +269,14 @@ class _Building(_Prim):
         normal[1][rev] = 0.0
         normal[2][rev] = np.where(via_x, 0.0, -np.sign(rw.dz[~pane]))
         surf[rev] = reg(self.reveal)
-        t[w[pane]], surf[w[pane]] = _glass(ty[pane], rng, _GLASS, _INTERIOR, reg, 4.0)
+        # Behind the pane: the room's back wall, floor or ceiling.
+        tp, rp = ty[pane], rw.take(pane)
+        base = np.where(upper[inside][pane], wz0[pane] - g["sill"], 0.0)
+        ceiling = base + np.where(upper[inside][pane], g["fh"], g["gf"])
+        zp = rp.oz + tp * rp.dz
+        to_slab = np.where(rp.dz > 0, ceiling - zp, base - zp) / rp.dz
+        extra = np.minimum(rng.uniform(1.0, 6.0, tp.size) / np.abs(rp.dy), to_slab)
+        t[w[pane]], surf[w[pane]] = _glass(tp, extra, rng, _GLASS, _INTERIOR, reg)
 
 
 class _VCyl(_Prim):
@@ -326,7 +334,11 @@ class _Cabin(_Prim):
         normal = tuple(v / norm for v in normal)
         glazed = pts[2][got] > self.c[2] + 0.12 * self.s[2]
         surf = np.full(got.size, reg(self.paint), np.int32)
-        tg, sg = _glass(t[got][glazed], rng, _CAR_GLASS, _CAR_INSIDE, reg, 1.5)
+        tg, dz = t[got][glazed], r.dz[got][glazed]
+        # Behind the glass: seats or the far side, never below seat level.
+        to_seat = np.where(dz < 0, (pts[2][got][glazed] - (self.c[2] - 0.4)) / -dz, np.inf)
+        extra = np.minimum(rng.uniform(0.3, 1.5, tg.size), to_seat)
+        tg, sg = _glass(tg, extra, rng, _CAR_GLASS, _CAR_INSIDE, reg)
         tt = t[got].copy()
         tt[glazed], surf[glazed] = tg, sg
         hits.offer(idx[got], tt, normal, surf)

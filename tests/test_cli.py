@@ -1,0 +1,117 @@
+"""The command line: help, info, and one-line errors with a non-zero exit and no output file."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+
+from tests.conftest import shared_file
+
+
+def cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True, text=True, cwd=cwd,
+                          timeout=600)
+
+
+def small_las(path: Path, n: int = 2_000) -> Path:
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.scales, header.offsets = [0.01] * 3, [0.0] * 3
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(0)
+    las.x, las.y, las.z = rng.uniform(0, 50, n), rng.uniform(0, 50, n), rng.uniform(0, 5, n)
+    las.write(path)
+    return path
+
+
+def assert_one_line_error(result: subprocess.CompletedProcess, *words: str) -> None:
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("pipeline: error: "), result.stderr
+    assert "Traceback" not in result.stderr
+    for word in words:
+        assert word in lines[0], lines[0]
+
+
+def test_help_reads_like_a_tool():
+    result = cli("run", "--help")
+    assert result.returncode == 0
+    for flag in ("--ratio", "--output", "--method", "--tile-size", "--overlap", "--workers", "--memory-limit",
+                 "--config", "--seed"):
+        assert flag in result.stdout
+
+
+def test_info_summary_and_json():
+    path = shared_file("bcts_1.laz")
+    text = cli("info", str(path))
+    assert text.returncode == 0 and "531,662" in text.stdout and "BC Albers" in text.stdout
+    summary = json.loads(cli("info", str(path), "--json").stdout)
+    assert summary["points"] == 531_662 and summary["point_format"] == 1 and summary["las_version"] == "1.2"
+    assert summary["scale"] == [0.01, 0.01, 0.01] and "gps_time" in summary["dimensions"]
+
+
+@pytest.mark.parametrize("ratio", ["0", "1.5", "nan", "-0.1"])
+def test_ratio_outside_range(tmp_path, ratio):
+    source = small_las(tmp_path / "in.las")
+    assert_one_line_error(cli("run", str(source), "--ratio", ratio, "-o", str(tmp_path / "o.las")), "ratio")
+    assert not (tmp_path / "o.las").exists()
+
+
+def test_missing_input(tmp_path):
+    assert_one_line_error(cli("run", str(tmp_path / "nope.laz"), "--ratio", "0.1"), "nope.laz", "no such file")
+
+
+def test_existing_output_needs_overwrite(tmp_path):
+    source = small_las(tmp_path / "in.las")
+    out = tmp_path / "o.las"
+    out.write_bytes(b"keep me")
+    assert_one_line_error(cli("run", str(source), "--ratio", "0.5", "-o", str(out)), "already exists")
+    assert out.read_bytes() == b"keep me"
+    ok = cli("run", str(source), "--ratio", "0.5", "-o", str(out), "--overwrite", "-q", "-w", "1")
+    assert ok.returncode == 0, ok.stderr
+    assert laspy.read(out).header.point_count == 1_000
+
+
+def test_corrupt_and_truncated_las(tmp_path):
+    garbage = tmp_path / "garbage.las"
+    garbage.write_bytes(b"this is not a las file" * 100)
+    assert_one_line_error(cli("run", str(garbage), "--ratio", "0.1"), "garbage.las")
+    source = small_las(tmp_path / "in.las")
+    truncated = tmp_path / "truncated.las"
+    truncated.write_bytes(source.read_bytes()[:-5_000])
+    out = tmp_path / "t.las"
+    assert_one_line_error(cli("run", str(truncated), "--ratio", "0.1", "-o", str(out)), "truncated.las")
+    assert not out.exists() and not list(tmp_path.glob(".t.las*"))
+
+
+def test_lazrs_panic_is_one_line():
+    result = cli("run", str(shared_file("edge-cases/simple-laszip-compressor-version-1.2r0.laz")), "--ratio", "0.1")
+    assert_one_line_error(result, "simple-laszip-compressor-version-1.2r0.laz")
+
+
+def test_zero_points(tmp_path):
+    empty = tmp_path / "empty.las"
+    laspy.LasData(laspy.LasHeader(version="1.2", point_format=1)).write(empty)
+    assert_one_line_error(cli("run", str(empty), "--ratio", "0.1"), "no points")
+
+
+def test_unknown_output_type_and_unwritable_folder(tmp_path):
+    source = small_las(tmp_path / "in.las")
+    assert_one_line_error(cli("run", str(source), "--ratio", "0.1", "-o", str(tmp_path / "o.txt")), "unsupported")
+    assert_one_line_error(cli("run", str(source), "--ratio", "0.1", "-o", str(tmp_path / "no" / "o.las")),
+                          "does not exist")
+
+
+def test_config_preset_and_flags(tmp_path):
+    source = small_las(tmp_path / "in.las")
+    config = tmp_path / "mine.toml"
+    config.write_text('[run]\nmethod = "random"\nworkers = 1\nbogus = 3\n')
+    assert_one_line_error(cli("run", str(source), "--ratio", "0.1", "--config", str(config)), "bogus")
+    config.write_text('[run]\nmethod = "random"\nworkers = 1\n')
+    result = cli("run", str(source), "--ratio", "0.1", "--config", str(config), "-o", str(tmp_path / "o.laz"))
+    assert result.returncode == 0, result.stderr
+    assert "200 of 2,000 points" in result.stdout

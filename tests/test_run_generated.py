@@ -1,0 +1,112 @@
+"""End to end on scans made here: seams, determinism across worker counts, PLY ingest."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import laspy
+import numpy as np
+import pytest
+import zarr
+from plyfile import PlyData, PlyElement
+from scipy.spatial import cKDTree
+
+import pipeline
+
+
+def write_dense_patch(path: Path, n: int = 120_000, seed: int = 0) -> None:
+    """A 16 m x 16 m gently curved patch at ~470 points/m^2: spacing well under 5 cm, many tile seams."""
+    rng = np.random.default_rng(seed)
+    header = laspy.LasHeader(version="1.2", point_format=3)
+    header.scales = [0.001] * 3
+    header.offsets = [500_000.0, 4_000_000.0, 0.0]
+    las = laspy.LasData(header)
+    xy = rng.uniform(0, 16, size=(n, 2))
+    las.x = 500_000 + xy[:, 0]
+    las.y = 4_000_000 + xy[:, 1]
+    las.z = 0.2 * np.sin(xy[:, 0]) + 0.01 * rng.normal(size=n)
+    las.intensity = rng.integers(0, 4000, n)
+    las.gps_time = np.sort(rng.uniform(0, 100, n))
+    las.write(path)
+
+
+def cross_tile_close_pairs(store: Path, tolerance: float) -> int:
+    """Pairs of output points from different tiles closer than tolerance (tiles from the zarr tile index)."""
+    group = zarr.open_group(str(store), mode="r")
+    xyz = np.column_stack([group[a][:] for a in "xyz"])
+    tile = np.empty(len(xyz), dtype=np.int64)
+    for entry in group.attrs["tile_index"]:
+        tile[entry["start"]:entry["start"] + entry["count"]] = entry["tile"]
+    pairs = cKDTree(xyz).query_pairs(tolerance, output_type="ndarray")
+    return int((tile[pairs[:, 0]] != tile[pairs[:, 1]]).sum())
+
+
+@pytest.fixture(scope="module")
+def dense_patch(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("patch") / "patch.las"
+    write_dense_patch(path)
+    return path
+
+
+@pytest.mark.parametrize("method", ["random", "fps"])
+def test_no_near_duplicates_across_seams(tmp_path, dense_patch, method):
+    settings = dict(ratio=0.5, method=method, tile_size=4.0, overlap=0.5, workers=1)
+    loose = pipeline.run(dense_patch, tmp_path / "loose.zarr", seam_tolerance=0.0, **settings)
+    strict = pipeline.run(dense_patch, tmp_path / "strict.zarr", seam_tolerance=0.03, **settings)
+    assert loose.output_points == strict.output_points == 60_000
+    assert cross_tile_close_pairs(tmp_path / "loose.zarr", 0.03) > 0  # the data really has seam conflicts
+    assert cross_tile_close_pairs(tmp_path / "strict.zarr", 0.03) == 0
+
+
+def test_one_and_two_workers_give_identical_bytes(tmp_path, dense_patch):
+    outputs = []
+    for workers in (1, 2):
+        out = tmp_path / f"w{workers}.laz"
+        pipeline.run(dense_patch, out, ratio=0.1, method="fps", tile_size=4.0, workers=workers, seed=7)
+        outputs.append(out.read_bytes())
+    assert outputs[0] == outputs[1]
+
+
+def test_seed_changes_random_output(tmp_path, dense_patch):
+    a = pipeline.run(dense_patch, tmp_path / "a.las", ratio=0.1, method="random", workers=1, seed=1).output
+    b = pipeline.run(dense_patch, tmp_path / "b.las", ratio=0.1, method="random", workers=1, seed=2).output
+    assert a.read_bytes() != b.read_bytes()
+
+
+def write_toronto3d_ply(path: Path, n: int = 20_000) -> np.ndarray:
+    """A PLY in Toronto3D's schema plus one property LAS has no slot for."""
+    rng = np.random.default_rng(9)
+    vertex = np.zeros(n, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("red", "u1"), ("green", "u1"),
+                                ("blue", "u1"), ("scalar_Intensity", "f4"), ("scalar_GPSTime", "f8"),
+                                ("scalar_ScanAngleRank", "f4"), ("scalar_Label", "f4"), ("scalar_Reflectance", "f4")])
+    vertex["x"] = 627_000 + rng.uniform(0, 30, n)
+    vertex["y"] = 4_842_000 + rng.uniform(0, 30, n)
+    vertex["z"] = rng.uniform(0, 5, n)
+    for channel in ("red", "green", "blue"):
+        vertex[channel] = rng.integers(0, 256, n)
+    vertex["scalar_Intensity"] = rng.integers(0, 3000, n)
+    vertex["scalar_GPSTime"] = np.sort(rng.uniform(0, 60, n))
+    vertex["scalar_ScanAngleRank"] = rng.uniform(-30, 30, n)
+    vertex["scalar_Label"] = rng.integers(0, 9, n)
+    vertex["scalar_Reflectance"] = rng.normal(size=n)
+    PlyData([PlyElement.describe(vertex, "vertex")]).write(str(path))
+    return vertex
+
+
+def test_toronto3d_ply_maps_to_point_format_7(tmp_path):
+    vertex = write_toronto3d_ply(tmp_path / "street.ply")
+    out = tmp_path / "street.laz"
+    pipeline.run(tmp_path / "street.ply", out, ratio=0.25, workers=1, tile_size=10)
+    las = laspy.read(out)
+    assert las.header.version == "1.4" and las.header.point_format.id == 7
+    assert len(las.points) == 5_000
+    assert list(las.point_format.extra_dimension_names) == ["scalar_Reflectance"]
+    source = {(round(x * 1000), round(y * 1000)): i for i, (x, y) in enumerate(zip(vertex["x"], vertex["y"]))}
+    rows = [source[(round(x * 1000), round(y * 1000))] for x, y in zip(las.x, las.y)]
+    src = vertex[rows]
+    np.testing.assert_allclose(las.z, src["z"], atol=0.0006)
+    np.testing.assert_array_equal(las.red, src["red"].astype(np.uint16) * 257)
+    np.testing.assert_array_equal(las.intensity, src["scalar_Intensity"].astype(np.uint16))
+    np.testing.assert_array_equal(las.gps_time, src["scalar_GPSTime"])
+    np.testing.assert_array_equal(las.classification, src["scalar_Label"].astype(np.uint8))
+    np.testing.assert_allclose(las.scan_angle * 0.006, src["scalar_ScanAngleRank"], atol=0.0031)
+    np.testing.assert_array_equal(las.scalar_Reflectance, src["scalar_Reflectance"])
