@@ -60,10 +60,11 @@ def cli() -> None:
               help="Folder for temporary tiles. [default: the output's folder]")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
+@click.option("--verbose", "-v", is_flag=True, help="Also print the time of each phase.")
 def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, method: str | None,
                 tile_size: float | None, overlap: float | None, max_tile_points: int | None,
                 seam_tolerance: float | None, workers: int | None, memory_limit: str | None, config: str | None,
-                seed: int | None, scratch: Path | None, overwrite: bool, quiet: bool) -> None:
+                seed: int | None, scratch: Path | None, overwrite: bool, quiet: bool, verbose: bool) -> None:
     """Simplify INPUTS (LAS/LAZ/COPC/PLY files that together form one scan) to one output."""
     from pipeline.runner import run_scan
 
@@ -75,6 +76,8 @@ def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, met
         rate = report.input_points / max(report.seconds, 1e-9)
         click.echo(f"{report.output}: {report.output_points:,} of {report.input_points:,} points "
                    f"({report.tiles} tiles, {report.seconds:.1f} s, {rate:,.0f} points/s)")
+    if verbose:
+        click.echo("  ".join(f"{phase}: {seconds:.2f} s" for phase, seconds in report.phases.items()))
 
 
 @cli.command("info")

@@ -1,42 +1,53 @@
-"""Running tile jobs on Dask: a LocalCluster of single-threaded worker processes by default."""
+"""Running tasks on Dask: a LocalCluster of single-threaded worker processes, results in submission order."""
 from __future__ import annotations
 
 import time
-from typing import Callable, Sequence
+from contextlib import contextmanager
+from typing import Any, Callable, Iterator, Sequence
 
 import dask
 from dask.distributed import Client, LocalCluster, as_completed
 from tqdm import tqdm
 
 from pipeline.errors import PipelineError
-from pipeline.tile_task import TileJob, TileOutcome, simplify_tile
 
 ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
 
 
-def run_jobs(jobs: Sequence[TileJob], workers: int, memory_limit: str, show_progress: bool,
-             on_done: Callable[[TileOutcome], None] = lambda outcome: None) -> None:
-    """Run every job on a fresh LocalCluster (one thread per worker, BLAS/torch threads 1), tiles largest first."""
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": ONE_THREAD,
-                          "distributed.worker.daemon": False}):
+@contextmanager
+def local_cluster(workers: int, memory_limit: str) -> Iterator[Client]:
+    """A client on a fresh LocalCluster: `workers` processes, one thread each, BLAS/torch threads 1."""
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": ONE_THREAD}):
         with LocalCluster(n_workers=workers, threads_per_worker=1, memory_limit=memory_limit, processes=True,
                           dashboard_address=None) as cluster, Client(cluster) as client:
-            _gather(client, jobs, show_progress, on_done)
+            yield client
 
 
-def _gather(client: Client, jobs: Sequence[TileJob], show_progress: bool,
-            on_done: Callable[[TileOutcome], None]) -> None:
-    """Submit one task per tile and consume results as they finish, with a tiles and points/s bar."""
-    futures = [client.submit(simplify_tile, job, key=f"tile-{job.tile_id}-{job.result_path}", pure=False)
-               for job in jobs]
+def map_tasks(client: Client, function: Callable, items: Sequence[Any], *shared: Any, desc: str,
+              show_progress: bool, weight: Callable[[Any], int] = lambda result: 0) -> list[Any]:
+    """function(item, *shared) for every item on the cluster; results in item order.
+
+    `shared` values are scattered once to every worker rather than shipped with each task; the bar
+    counts finished tasks and, through `weight`, points per second.
+    """
+    shared_futures = [client.scatter(value, broadcast=True) for value in shared]
+    futures = [client.submit(function, item, *shared_futures, pure=False) for item in items]
+    position = {future.key: i for i, future in enumerate(futures)}
+    results: list[Any] = [None] * len(items)
     started, points = time.perf_counter(), 0
-    with tqdm(total=len(jobs), unit="tile", disable=not show_progress, desc="simplify") as bar:
+    with tqdm(total=len(items), desc=desc, unit="task", disable=not show_progress, leave=False) as bar:
         for future in as_completed(futures):
             try:
-                outcome = future.result()
+                result = future.result()
             except Exception as exc:
-                raise PipelineError(f"a tile task failed: {type(exc).__name__}: {exc}") from exc
-            points += outcome.points
-            bar.set_postfix_str(f"{points / max(time.perf_counter() - started, 1e-9):,.0f} pts/s")
+                for pending in futures:
+                    pending.cancel()
+                if isinstance(exc, PipelineError):
+                    raise
+                raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
+            results[position[future.key]] = result
+            points += weight(result)
+            if points:
+                bar.set_postfix_str(f"{points / max(time.perf_counter() - started, 1e-9):,.0f} points/s")
             bar.update()
-            on_done(outcome)
+    return results

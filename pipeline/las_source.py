@@ -64,17 +64,17 @@ class LasSource:
         """Points the header claims (the data may hold fewer if the file is truncated)."""
         return int(self.header.point_count)
 
-    def chunks(self, size: int) -> Iterator[np.ndarray]:
-        """Raw point records (laspy's structured dtype) in file order, at most `size` at a time."""
-        done = 0
+    def read(self, start: int, count: int) -> np.ndarray:
+        """Raw point records [start, start+count) in laspy's structured dtype (LAZ seeks by chunk table)."""
         try:
             with native_panics_silenced(), laspy.open(self.path) as reader:
-                for record in reader.chunk_iterator(size):
-                    done += len(record)
-                    yield record.array
-        except BaseException as exc:
-            if is_fatal_signal(exc) or isinstance(exc, GeneratorExit):
+                reader.seek(start)
+                records = reader.read_points(count).array
+        except BaseException as exc:  # lazrs raises PanicException, a BaseException
+            if is_fatal_signal(exc):
                 raise
             raise describe_failure(self.path, exc) from None
-        if done != self.point_count:
-            raise PipelineError(f"{self.path}: header says {self.point_count} points but the data holds {done} (truncated file?)")
+        if len(records) != count:
+            raise PipelineError(f"{self.path}: header says {self.point_count} points but the data ends before "
+                                f"point {start + count} (truncated file?)")
+        return records

@@ -2,11 +2,9 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Iterator
-
 import laspy
 import numpy as np
-from plyfile import PlyData, PlyParseError
+from plyfile import PlyData, PlyElement, PlyParseError
 
 from pipeline.errors import PipelineError
 
@@ -29,15 +27,26 @@ class PlySource:
         self.path = path
         if not path.is_file():
             raise PipelineError(f"{path}: no such file")
-        try:
-            self._vertices = PlyData.read(str(path), mmap=True)["vertex"]
-        except (PlyParseError, KeyError, ValueError, OSError) as exc:
-            raise PipelineError(f"{path}: cannot read PLY vertices: {exc}") from None
+        self._vertices = self._open_vertices()
         names = [p.name for p in self._vertices.properties]
         if not set(XYZ) <= set(names):
             raise PipelineError(f"{path}: PLY vertices lack x, y, z properties")
         self._extra = [n for n in names if n not in XYZ + RGB and n not in MAPPED]
         self.header = self._make_header(chunk)
+
+    def _open_vertices(self) -> PlyElement:
+        try:
+            return PlyData.read(str(self.path), mmap=True)["vertex"]
+        except (PlyParseError, KeyError, ValueError, OSError) as exc:
+            raise PipelineError(f"{self.path}: cannot read PLY vertices: {exc}") from None
+
+    def __getstate__(self) -> dict:
+        """Pickle without the memory map (workers reopen the file), so shipping a source is cheap."""
+        return {**self.__dict__, "_vertices": None}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._vertices = self._open_vertices()
 
     @property
     def point_count(self) -> int:
@@ -67,21 +76,20 @@ class PlySource:
             header.mins, header.maxs = mins, maxs
         return header
 
-    def chunks(self, size: int) -> Iterator[np.ndarray]:
-        """Raw PF7 records (with extra bytes for unmapped properties) in vertex order."""
-        for start in range(0, self.point_count, size):
-            stop = min(start + size, self.point_count)
-            record = laspy.ScaleAwarePointRecord.zeros(stop - start, header=self.header)
-            for axis in XYZ:
-                setattr(record, axis, self._column(axis, start, stop).astype(np.float64))
-            names = self._vertices.data.dtype.names
-            for channel in RGB:
-                if channel in names:
-                    # 8-bit PLY colour to LAS's 16-bit range (x257 maps 255 to 65535)
-                    record[channel] = self._column(channel, start, stop).astype(np.uint16) * 257
-            for prop, (dim, convert) in MAPPED.items():
-                if prop in names:
-                    record[dim] = convert(self._column(prop, start, stop))
-            for name in self._extra:
-                record[name] = self._column(name, start, stop)
-            yield record.array
+    def read(self, start: int, count: int) -> np.ndarray:
+        """Raw PF7 records (with extra bytes for unmapped properties) of vertices [start, start+count)."""
+        stop = start + count
+        record = laspy.ScaleAwarePointRecord.zeros(count, header=self.header)
+        for axis in XYZ:
+            setattr(record, axis, self._column(axis, start, stop).astype(np.float64))
+        names = self._vertices.data.dtype.names
+        for channel in RGB:
+            if channel in names:
+                # 8-bit PLY colour to LAS's 16-bit range (x257 maps 255 to 65535)
+                record[channel] = self._column(channel, start, stop).astype(np.uint16) * 257
+        for prop, (dim, convert) in MAPPED.items():
+            if prop in names:
+                record[dim] = convert(self._column(prop, start, stop))
+        for name in self._extra:
+            record[name] = self._column(name, start, stop)
+        return record.array

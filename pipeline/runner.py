@@ -11,21 +11,21 @@ from pathlib import Path
 from typing import Iterator, Sequence
 
 import numpy as np
+from dask.distributed import Client
 
 from pipeline.config import RunConfig
 from pipeline.crs import crs_wkt
 from pipeline.errors import PipelineError
-from pipeline.execute import run_jobs
-from pipeline.scan import Scan
-from pipeline.tile_task import TileJob
+from pipeline.execute import local_cluster, map_tasks
+from pipeline.scan import Piece, Scan
+from pipeline.tasks import TileJob, bucket_into_store, count_piece, simplify_tile
 from pipeline.writers import OUTPUT_SUFFIXES, OutputMeta, TilePart, write_output
 from tiling.budgets import target_count, tile_budgets
-from tiling.bucket import bucket_points
+from tiling.bucket import Halos
 from tiling.plan import DensityGrid, TilePlan, plan_tiles
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
-from tiling.store import TileStore
+from tiling.store import Slice, TileStore
 
-BUCKET_BUFFER_BYTES = 256 * 2**20  # rows held in memory before the bucketing pass flushes to disk
 RESERVE_SHARE = 0.05               # extra picks per tile, in priority order, for the seam top-up
 RESERVE_MIN = 16
 
@@ -39,6 +39,7 @@ class RunReport:
     output_points: int
     tiles: int
     seconds: float
+    phases: dict[str, float]
 
 
 def default_output(first_input: Path) -> Path:
@@ -65,41 +66,85 @@ def check_output(output: Path, overwrite: bool) -> None:
 
 
 def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: RunConfig, overwrite: bool = False,
-        scratch: str | Path | None = None, show_progress: bool = True) -> RunReport:
+             scratch: str | Path | None = None, show_progress: bool = True) -> RunReport:
     """Simplify one scan (one or more files) to `output`; the Python twin of `pipeline run`."""
     started = time.perf_counter()
+    clock = PhaseClock()
     config = config.validated()
     scan = Scan(inputs)
     output = Path(output) if output is not None else default_output(scan.paths[0])
     check_output(output, overwrite)
-    mins, maxs = scan.bounds
-    grid = DensityGrid.covering(mins, maxs, config.tile_size)
-    counts = grid.count(chunk.xyz for chunk in scan.chunks(config.chunk_points))
-    total = int(counts.sum())
-    target = target_count(config.ratio, total)
-    if target == 0:
-        raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {total} points")
-    plan = plan_tiles(grid, counts, config.max_tile_points)
+    pieces = scan.pieces(config.chunk_points)
     scratch_dir = Path(tempfile.mkdtemp(prefix=f".{output.name}.scratch-", dir=scratch or output.parent))
     try:
-        store = TileStore.create(scratch_dir / "tiles.zarr", scan.dtype,
-                                 {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
-        core_counts = bucket_points(((c.records, c.xyz) for c in scan.chunks(config.chunk_points)),
-                                    plan, config.overlap, store, BUCKET_BUFFER_BYTES)
-        budgets = tile_budgets(core_counts, config.ratio)
-        jobs = make_jobs(store, scratch_dir, core_counts, budgets, config)
-        run_jobs(jobs, config.workers, config.memory_limit, show_progress)
+        with local_cluster(config.workers, config.memory_limit) as client:
+            clock.lap("start cluster")
+            plan = density_plan(client, scan, pieces, config, show_progress)
+            clock.lap("density pass")
+            total = sum(t.count for t in plan.tiles)
+            target = target_count(config.ratio, total)
+            if target == 0:
+                raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {total} points")
+            store = TileStore.create(scratch_dir / "tiles.zarr", scan.dtype,
+                                     {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
+            slices, core_counts = bucket_scan(client, scan, pieces, plan, store, config, show_progress)
+            clock.lap("bucket pass")
+            budgets = tile_budgets(core_counts, config.ratio)
+            jobs = make_jobs(store, scratch_dir, slices, core_counts, budgets, config)
+            map_tasks(client, simplify_tile, jobs, desc="simplify", show_progress=show_progress,
+                      weight=lambda outcome: outcome.points)
+            clock.lap("simplify tiles")
+        clock.lap("stop cluster")
         parts = stitched_parts(store, plan, {job.tile_id: job for job in jobs}, budgets, config.seam_tolerance, scan)
         meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], config.ratio, config.method,
                           version("lidar-simplify"))
         written = write_output(output, scan.header, target, parts, meta)
+        clock.lap("stitch and write")
     finally:
         shutil.rmtree(scratch_dir, ignore_errors=True)
-    return RunReport(output, total, written, len(jobs), time.perf_counter() - started)
+    return RunReport(output, total, written, len(jobs), time.perf_counter() - started, clock.laps)
 
 
-def make_jobs(store: TileStore, scratch_dir: Path, core_counts: np.ndarray, budgets: np.ndarray,
-              config: RunConfig) -> list[TileJob]:
+class PhaseClock:
+    """Seconds spent in each named phase of a run, for the summary and the benchmarks."""
+
+    def __init__(self) -> None:
+        self.laps: dict[str, float] = {}
+        self._last = time.perf_counter()
+
+    def lap(self, phase: str) -> None:
+        """Close the phase that just ended."""
+        now = time.perf_counter()
+        self.laps[phase] = now - self._last
+        self._last = now
+
+
+def density_plan(client: Client, scan: Scan, pieces: list[Piece], config: RunConfig, show_progress: bool) -> TilePlan:
+    """The streamed density pass (pieces counted in parallel) and the tile plan made from it."""
+    mins, maxs = scan.bounds
+    grid = DensityGrid.covering(mins, maxs, config.tile_size)
+    counts = np.zeros(grid.shape[0] * grid.shape[1], dtype=np.int64)
+    for cells, cell_counts in map_tasks(client, count_piece, pieces, scan, grid, desc="density", show_progress=show_progress):
+        counts[cells] += cell_counts
+    return plan_tiles(grid, counts.reshape(grid.shape), config.max_tile_points)
+
+
+def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], plan: TilePlan, store: TileStore,
+                config: RunConfig, show_progress: bool) -> tuple[list[list[Slice]], np.ndarray]:
+    """The bucketing pass: each piece written grouped by tile; returns each tile's slices and core count."""
+    results = map_tasks(client, bucket_into_store, pieces, scan, plan, Halos.of(plan, config.overlap), str(store.path),
+                        desc="bucket", show_progress=show_progress)
+    slices: list[list[Slice]] = [[] for _ in plan.tiles]
+    core_counts = np.zeros(len(plan.tiles), dtype=np.int64)
+    for piece, (starts, stops, cores) in zip(pieces, results):
+        core_counts += cores
+        for tile_id in np.flatnonzero(stops > starts):
+            slices[tile_id].append(Slice(piece.number, int(starts[tile_id]), int(stops[tile_id])))
+    return slices, core_counts
+
+
+def make_jobs(store: TileStore, scratch_dir: Path, slices: list[list[Slice]], core_counts: np.ndarray,
+              budgets: np.ndarray, config: RunConfig) -> list[TileJob]:
     """One job per tile with a non-zero budget, biggest tiles first so the slowest start early."""
     jobs = []
     for tile_id in np.argsort(-core_counts, kind="stable"):
@@ -107,8 +152,8 @@ def make_jobs(store: TileStore, scratch_dir: Path, core_counts: np.ndarray, budg
         if budget == 0:
             continue
         reserve = min(int(core_counts[tile_id]) - budget, max(RESERVE_MIN, int(np.ceil(RESERVE_SHARE * budget))))
-        jobs.append(TileJob(str(store.path), str(scratch_dir / f"tile-{tile_id}.npz"), int(tile_id), budget,
-                            reserve, config.method, config.seed))
+        jobs.append(TileJob(str(store.path), str(scratch_dir / f"tile-{tile_id}.npz"), int(tile_id),
+                            tuple(slices[tile_id]), budget, reserve, config.method, config.seed))
     return jobs
 
 
@@ -131,7 +176,7 @@ def stitched_parts(store: TileStore, plan: TilePlan, jobs: dict[int, TileJob], b
         rows, xyz = _load_result(job)
         rejected = rejections.get(tile_id, np.empty(0, dtype=np.int64))
         chosen = first_accepted(len(rows), int(budgets[tile_id]), rejected)
-        records = store.load(tile_id).records[rows[chosen]]
+        records = store.load(job.slices).records[rows[chosen]]
         yield TilePart(tile_id, plan.bounds(tile_id), _moved_to(records, xyz[chosen], scan))
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Sequence
 
 import laspy
 import numpy as np
@@ -22,6 +22,20 @@ class Chunk:
 
     records: np.ndarray
     xyz: np.ndarray
+
+
+@dataclass(frozen=True)
+class Piece:
+    """A run of consecutive points of one input file: the unit a worker reads.
+
+    `first` is the scan-wide index of its first point (files are numbered one after another).
+    """
+
+    number: int
+    source: int
+    start: int
+    count: int
+    first: int
 
 
 def open_source(path: Path) -> LasSource | PlySource:
@@ -101,12 +115,21 @@ class Scan:
             records[name] = ints.astype(np.int32)
         return records
 
-    def chunks(self, size: int) -> Iterator[Chunk]:
-        """The whole scan in order, `size` points at most per chunk, with a finiteness check."""
-        for source in self.sources:
-            for raw in source.chunks(size):
-                records = self._to_grid(raw, source)
-                xyz = self.decode_xyz(records)
-                if not np.isfinite(xyz).all():
-                    raise PipelineError(f"{source.path}: NaN or infinite coordinates")
-                yield Chunk(records, xyz)
+    def pieces(self, size: int) -> list[Piece]:
+        """The scan cut into pieces of at most `size` points, in file order, never crossing files."""
+        pieces, first = [], 0
+        for number_in_source, source in enumerate(self.sources):
+            for start in range(0, source.point_count, size):
+                count = min(size, source.point_count - start)
+                pieces.append(Piece(len(pieces), number_in_source, start, count, first + start))
+            first += source.point_count
+        return pieces
+
+    def read(self, piece: Piece) -> Chunk:
+        """One piece's records on this scan's grid and their xyz, with a finiteness check."""
+        source = self.sources[piece.source]
+        records = self._to_grid(source.read(piece.start, piece.count), source)
+        xyz = self.decode_xyz(records)
+        if not np.isfinite(xyz).all():
+            raise PipelineError(f"{source.path}: NaN or infinite coordinates")
+        return Chunk(records, xyz)

@@ -89,6 +89,7 @@ class _Rays:
         self.key = ox + _TAN * oy
 
     def take(self, sel) -> _Rays:
+        """The rays selected by a slice, mask or index array."""
         return _Rays(self.ox[sel], self.oy[sel], self.oz[sel],
                      self.dx[sel], self.dy[sel], self.dz[sel])
 
@@ -402,11 +403,6 @@ def _rng(seed: int, stream: int, index: int):
     return np.random.default_rng(np.random.SeedSequence([seed, stream, zigzag]))
 
 
-def _sidewalk_z(ay):
-    """Sidewalk height at |y| >= kerb line (2 % fall towards the road)."""
-    return _EDGE_Z + _KERB + _SLOPE * (ay - _ROAD_HALF)
-
-
 def _add_buildings(rng, x_lo, s, prims):
     side = 1 if s > 0 else 0
     pos, end = x_lo, x_lo + _TILE
@@ -514,8 +510,8 @@ def _add_street_light(rng, side, s, x, prims):
     ye = y - s * arm
     prims.append(_VCyl(side, x, y, 0.1, -0.3, height, _POLE_METAL))
     prims.append(_YCyl(side, x, height - 0.25, 0.05, min(y, ye), max(y, ye), _POLE_METAL))
-    prims.append(_Box(side, (x - 0.15, ye - 0.3, height - 0.45), (x + 0.15, ye + 0.3, height - 0.25),
-                      _LAMP))
+    prims.append(_Box(side, (x - 0.15, ye - 0.3, height - 0.45),
+                      (x + 0.15, ye + 0.3, height - 0.25), _LAMP))
 
 
 def _add_sign(rng, side, s, x, prims):
@@ -523,7 +519,8 @@ def _add_sign(rng, side, s, x, prims):
     y, height = s * 7.4, rng.uniform(2.8, 3.5)
     prims.append(_VCyl(side, x, y, 0.04, -0.3, height, _POLE_METAL))
     plate = _surf(1, 6, 0.95, _SIGNS[int(rng.integers(len(_SIGNS)))])
-    prims.append(_Box(side, (x - 0.06, y - 0.35, height - 0.7), (x - 0.04, y + 0.35, height), plate))
+    prims.append(_Box(side, (x - 0.06, y - 0.35, height - 0.7), (x - 0.04, y + 0.35, height),
+                      plate))
 
 
 def _add_tree(rng, side, x, y, prims, crowns):
@@ -532,10 +529,11 @@ def _add_tree(rng, side, x, y, prims, crowns):
     trunk_r = rng.uniform(0.12, 0.25)
     prims.append(_VCyl(side, x, y, trunk_r, -0.3, cz, _TRUNK))
     n = int(rng.integers(4, 7))
-    centres = np.array([x, y, cz]) + rng.normal(0, 1, (n, 3)) * np.array([0.35, 0.35, 0.25]) * radius
+    spread = np.array([0.35, 0.35, 0.25]) * radius
+    centres = np.array([x, y, cz]) + rng.normal(0, 1, (n, 3)) * spread
     radii = radius * rng.uniform(0.55, 0.8, n)
     leaf = _surf(5, 3, rng.uniform(0.35, 0.5),
-                 _tint(rng, (rng.uniform(55, 90), rng.uniform(100, 140), rng.uniform(35, 60)), 0.05))
+                 _tint(rng, rng.uniform((55, 100, 35), (90, 140, 60)), 0.05))
     crowns.append(_Crown(side, centres, radii, rng.uniform(0.4, 0.9), leaf))
 
 
@@ -554,8 +552,8 @@ def _wire_z(x):
 def _add_utility_pole(x_lo, prims):
     xp = x_lo + 0.5 * _TILE
     prims.append(_VCyl(1, xp, _UTIL_Y, 0.15, -0.3, _UTIL_H + 1.0, _POLE_WOOD))
-    prims.append(_Box(1, (xp - 0.05, _UTIL_Y - 0.9, _UTIL_H - 0.12), (xp + 0.05, _UTIL_Y + 0.9, _UTIL_H),
-                      _POLE_WOOD))
+    prims.append(_Box(1, (xp - 0.05, _UTIL_Y - 0.9, _UTIL_H - 0.12),
+                      (xp + 0.05, _UTIL_Y + 0.9, _UTIL_H), _POLE_WOOD))
     return xp
 
 
@@ -647,7 +645,8 @@ def _scan_side(seed, side, lines, phases, reg, rng):
         _wires(r, everything, hits, reg)
     k_lo, k_hi = r.key[0], r.key[-1]
     margin = _TAN * _Y_MAX + 1.0
-    tiles = range(int(np.floor((k_lo - margin) / _TILE)) - 1, int(np.floor((k_hi + margin) / _TILE)) + 2)
+    tiles = range(int(np.floor((k_lo - margin) / _TILE)) - 1,
+                  int(np.floor((k_hi + margin) / _TILE)) + 2)
     veg_in, veg_out = np.full(n, np.inf), np.full(n, np.inf)
     veg_fp, veg_surf = np.zeros(n), np.zeros(n, np.int32)
     for t in tiles:
@@ -692,7 +691,7 @@ def _returns(r, ray_id, hits, veg_in, veg_out, veg_fp, veg_surf, rng):
     s_idx = np.nonzero(keep)[0]
     rows = np.concatenate([v[vi], s_idx])
     return dict(
-        ray=rows, t=np.concatenate([t_veg[vi, vk], t_solid[s_idx]]),
+        t=np.concatenate([t_veg[vi, vk], t_solid[s_idx]]),
         ret=np.concatenate([rank, n_veg[s_idx] + 1]), nret=n_ret[rows],
         surf=np.concatenate([veg_surf[v[vi]], hits.surf[s_idx]]),
         cos=np.concatenate([rng.uniform(0.2, 1.0, vi.size),
@@ -704,16 +703,12 @@ def _returns(r, ray_id, hits, veg_in, veg_out, veg_fp, veg_surf, rng):
 
 def _scan_block(seed: int, j: int, phases) -> dict:
     """All returns of scan lines [j B, (j + 1) B) in time order, as LAS-ready arrays."""
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        return _scan_block_unguarded(seed, j, phases)
-
-
-def _scan_block_unguarded(seed: int, j: int, phases) -> dict:
     rng = _rng(seed, _BLOCK_STREAM, j)
     lines = np.arange(j * _LINES_PER_BLOCK, (j + 1) * _LINES_PER_BLOCK)
     reg = _Registry()
     sides = [_scan_side(seed, s, lines, phases, reg, rng) for s in (0, 1)]
-    cat = {k: np.concatenate([sd[k] for sd in sides]) for k in ("t", "ret", "nret", "surf", "cos", "gid")}
+    cat = {k: np.concatenate([sd[k] for sd in sides])
+           for k in ("t", "ret", "nret", "surf", "cos", "gid")}
     o = [np.concatenate([sd["o"][a] for sd in sides]) for a in range(3)]
     d = [np.concatenate([sd["d"][a] for sd in sides]) for a in range(3)]
     order = np.argsort(cat["gid"] * 4 + cat["ret"], kind="stable")
@@ -749,7 +744,9 @@ def _blocks(n_points: int, seed: int):
     phases = _drive_params(seed)
     left, j = n_points, 0
     while left > 0:
-        block = _scan_block(seed, j, phases)
+        # Misses are inf distances; inf/nan arithmetic on them is expected.
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            block = _scan_block(seed, j, phases)
         size = block["X"].size
         if size > left:
             block = {k: v[:left] for k, v in block.items()}
