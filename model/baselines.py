@@ -6,7 +6,7 @@ import numpy as np
 
 from model.selection import Selection, Tile
 
-FPS_OVERSHOOT = 1.1   # extra samples asked of FPS over core+halo so enough of them land in the core
+FPS_OVERSHOOT = 1.03  # extra samples asked of FPS over core+halo so enough of them land in the core
 VOXEL_CELL_TOLERANCE = 1e-4  # stop bisecting the cell size once the bracket is this tight (relative)
 
 

@@ -4,21 +4,27 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Sequence
 
+from typing import TYPE_CHECKING
+
 from pipeline.config import RunConfig, build_config
 from pipeline.errors import PipelineError
-from pipeline.runner import RunReport, run_scan
 
-__all__ = ["PipelineError", "RunConfig", "RunReport", "run"]
+if TYPE_CHECKING:
+    from pipeline.runner import RunReport
+
+__all__ = ["PipelineError", "RunConfig", "run"]
 
 
 def run(inputs: str | Path | Sequence[str | Path], output: str | Path | None = None, *, ratio: float,
         config: str | None = None, overwrite: bool = False, scratch: str | Path | None = None,
-        progress: bool = False, **settings: Any) -> RunReport:
+        progress: bool = False, **settings: Any) -> "RunReport":
     """Simplify a scan (one file or several that form one scan) to `output` at `ratio`.
 
     `config` names a preset (`default`, `toronto3d`, `airborne`) or a TOML file; keyword settings
     (method, tile_size, overlap, workers, memory_limit, seed, ...) override it, as CLI flags do.
     """
+    from pipeline.runner import run_scan  # imported here so Dask workers importing pipeline.tasks stay light
+
     paths = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
     return run_scan(paths, output, build_config(config, ratio=ratio, **settings), overwrite=overwrite,
                         scratch=scratch, show_progress=progress)

@@ -71,7 +71,8 @@ def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, met
     settings = build_config(config, ratio=ratio, method=method, tile_size=tile_size, overlap=overlap,
                             max_tile_points=max_tile_points, seam_tolerance=seam_tolerance, workers=workers,
                             memory_limit=memory_limit, seed=seed)
-    report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch, show_progress=not quiet)
+    report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch,
+                      show_progress=not quiet and sys.stderr.isatty())
     if not quiet:
         rate = report.input_points / max(report.seconds, 1e-9)
         click.echo(f"{report.output}: {report.output_points:,} of {report.input_points:,} points "
@@ -106,7 +107,8 @@ def demo_command(out_dir: Path, points: int, ratio: float, workers: int | None) 
         click.echo(f"simulating {points:,} points of street scan -> {scan}")
         write_street_scan(scan, n_points=points, seed=0)
     settings = build_config("toronto3d", ratio=ratio, workers=workers)
-    report = run_scan([scan], out_dir / "demo_street.simplified.laz", settings, overwrite=True)
+    report = run_scan([scan], out_dir / "demo_street.simplified.laz", settings, overwrite=True,
+                      show_progress=sys.stderr.isatty())
     click.echo(f"{report.output}: {report.output_points:,} of {report.input_points:,} points "
                f"({report.tiles} tiles, {report.seconds:.1f} s)")
 

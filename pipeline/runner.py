@@ -13,15 +13,15 @@ from typing import Iterator, Sequence
 import numpy as np
 from dask.distributed import Client
 
-from pipeline.config import RunConfig
+from pipeline.config import RunConfig, parse_size
 from pipeline.crs import crs_wkt
 from pipeline.errors import PipelineError
 from pipeline.execute import local_cluster, map_tasks
 from pipeline.scan import Piece, Scan
-from pipeline.tasks import TileJob, bucket_into_store, count_piece, simplify_tile
+from pipeline.tasks import TileJob, bucket_piece, simplify_tile
 from pipeline.writers import OUTPUT_SUFFIXES, OutputMeta, TilePart, write_output
 from tiling.budgets import target_count, tile_budgets
-from tiling.bucket import Halos
+from tiling.bucket import row_ranges
 from tiling.plan import DensityGrid, TilePlan, plan_tiles
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
 from tiling.store import Slice, TileStore
@@ -79,19 +79,17 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     try:
         with local_cluster(config.workers, config.memory_limit) as client:
             clock.lap("start cluster")
-            plan = density_plan(client, scan, pieces, config, show_progress)
-            clock.lap("density pass")
+            store = TileStore.create(scratch_dir / "tiles.zarr", scan.dtype,
+                                     {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
+            plan, slices = bucket_scan(client, scan, pieces, store, config, show_progress)
+            clock.lap("read and bucket")
             total = sum(t.count for t in plan.tiles)
             target = target_count(config.ratio, total)
             if target == 0:
                 raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {total} points")
-            store = TileStore.create(scratch_dir / "tiles.zarr", scan.dtype,
-                                     {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
-            slices, core_counts = bucket_scan(client, scan, pieces, plan, store, config, show_progress)
-            clock.lap("bucket pass")
-            budgets = tile_budgets(core_counts, config.ratio)
-            jobs = make_jobs(store, scratch_dir, slices, core_counts, budgets, config)
-            map_tasks(client, simplify_tile, jobs, desc="simplify", show_progress=show_progress,
+            budgets = tile_budgets(np.array([t.count for t in plan.tiles]), config.ratio)
+            jobs = make_jobs(store, scratch_dir, plan, slices, budgets, config)
+            map_tasks(client, simplify_tile, jobs, plan, desc="simplify", show_progress=show_progress,
                       weight=lambda outcome: outcome.points)
             clock.lap("simplify tiles")
         clock.lap("stop cluster")
@@ -119,42 +117,43 @@ class PhaseClock:
         self._last = now
 
 
-def density_plan(client: Client, scan: Scan, pieces: list[Piece], config: RunConfig, show_progress: bool) -> TilePlan:
-    """The streamed density pass (pieces counted in parallel) and the tile plan made from it."""
+def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], store: TileStore, config: RunConfig,
+                show_progress: bool) -> tuple[TilePlan, list[list[Slice]]]:
+    """The one streamed pass: pieces stored sorted by grid cell; then the plan from the summed
+    density, and each tile's core+halo as row slices of the pieces."""
     mins, maxs = scan.bounds
     grid = DensityGrid.covering(mins, maxs, config.tile_size)
+    buckets = map_tasks(client, bucket_piece, pieces, scan, grid, str(store.path), desc="read and bucket",
+                        show_progress=show_progress, weight=lambda result: int(result[1][-1]))
     counts = np.zeros(grid.shape[0] * grid.shape[1], dtype=np.int64)
-    for cells, cell_counts in map_tasks(client, count_piece, pieces, scan, grid, desc="density", show_progress=show_progress):
-        counts[cells] += cell_counts
-    return plan_tiles(grid, counts.reshape(grid.shape), config.max_tile_points)
+    for cells, starts in buckets:
+        counts[cells] += np.diff(starts)
+    plan = plan_tiles(grid, counts.reshape(grid.shape), config.max_tile_points)
+    slices: list[list[Slice]] = []
+    for tile_id in range(len(plan.tiles)):
+        cell_ranges = plan.halo_cell_ranges(tile_id, config.overlap)
+        slices.append([Slice(piece.number, int(lo), int(hi)) for piece, (cells, starts) in zip(pieces, buckets)
+                       for lo, hi in row_ranges(cells, starts, cell_ranges)])
+    return plan, slices
 
 
-def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], plan: TilePlan, store: TileStore,
-                config: RunConfig, show_progress: bool) -> tuple[list[list[Slice]], np.ndarray]:
-    """The bucketing pass: each piece written grouped by tile; returns each tile's slices and core count."""
-    results = map_tasks(client, bucket_into_store, pieces, scan, plan, Halos.of(plan, config.overlap), str(store.path),
-                        desc="bucket", show_progress=show_progress)
-    slices: list[list[Slice]] = [[] for _ in plan.tiles]
-    core_counts = np.zeros(len(plan.tiles), dtype=np.int64)
-    for piece, (starts, stops, cores) in zip(pieces, results):
-        core_counts += cores
-        for tile_id in np.flatnonzero(stops > starts):
-            slices[tile_id].append(Slice(piece.number, int(starts[tile_id]), int(stops[tile_id])))
-    return slices, core_counts
-
-
-def make_jobs(store: TileStore, scratch_dir: Path, slices: list[list[Slice]], core_counts: np.ndarray,
-              budgets: np.ndarray, config: RunConfig) -> list[TileJob]:
-    """One job per tile with a non-zero budget, biggest tiles first so the slowest start early."""
+def make_jobs(store: TileStore, scratch_dir: Path, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray,
+              config: RunConfig) -> list[TileJob]:
+    """One job per tile with a non-zero budget, in tile order: neighbours share pieces, so caches stay warm."""
     jobs = []
-    for tile_id in np.argsort(-core_counts, kind="stable"):
+    for tile_id, tile in enumerate(plan.tiles):
         budget = int(budgets[tile_id])
         if budget == 0:
             continue
-        reserve = min(int(core_counts[tile_id]) - budget, max(RESERVE_MIN, int(np.ceil(RESERVE_SHARE * budget))))
-        jobs.append(TileJob(str(store.path), str(scratch_dir / f"tile-{tile_id}.npz"), int(tile_id),
-                            tuple(slices[tile_id]), budget, reserve, config.method, config.seed))
+        reserve = min(tile.count - budget, max(RESERVE_MIN, int(np.ceil(RESERVE_SHARE * budget))))
+        jobs.append(TileJob(str(store.path), str(scratch_dir / f"tile-{tile_id}.npz"), tile_id, tuple(slices[tile_id]),
+                            config.overlap, piece_cache_bytes(config), budget, reserve, config.method, config.seed))
     return jobs
+
+
+def piece_cache_bytes(config: RunConfig) -> int:
+    """Memory each process may spend caching stored pieces: a quarter of the per-worker limit."""
+    return parse_size(config.memory_limit) // 4
 
 
 def _load_result(job: TileJob) -> tuple[np.ndarray, np.ndarray]:
@@ -176,7 +175,7 @@ def stitched_parts(store: TileStore, plan: TilePlan, jobs: dict[int, TileJob], b
         rows, xyz = _load_result(job)
         rejected = rejections.get(tile_id, np.empty(0, dtype=np.int64))
         chosen = first_accepted(len(rows), int(budgets[tile_id]), rejected)
-        records = store.load(job.slices).records[rows[chosen]]
+        records = store.load(job.slices, job.cache_bytes).records[rows[chosen]]
         yield TilePart(tile_id, plan.bounds(tile_id), _moved_to(records, xyz[chosen], scan))
 
 

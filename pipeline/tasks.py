@@ -1,4 +1,4 @@
-"""The work Dask workers do: count a piece's density, bucket a piece into the store, simplify a tile.
+"""The work Dask workers do: bucket a piece into the store (counting its density), simplify a tile.
 
 Each function takes plain picklable data and touches only its own piece or tile, so any worker of a
 local or remote cluster can run it, in any order, with the same result.
@@ -14,7 +14,7 @@ import numpy as np
 
 from model import Tile, get_simplifier
 from pipeline.scan import Piece, Scan
-from tiling.bucket import Halos, bucket_piece
+from tiling.bucket import bucket_by_cell
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, TileStore
 
@@ -27,6 +27,8 @@ class TileJob:
     result_path: str
     tile_id: int
     slices: tuple[Slice, ...]
+    overlap: float
+    cache_bytes: int
     budget: int
     reserve: int
     method: str
@@ -43,19 +45,12 @@ class TileOutcome:
     seconds: float
 
 
-def count_piece(piece: Piece, scan: Scan, grid: DensityGrid) -> tuple[np.ndarray, np.ndarray]:
-    """Occupied grid cells of one piece and their point counts (sparse, so results stay small)."""
-    cells = grid.cell_of(scan.read(piece).xyz)
-    occupied, counts = np.unique(cells, return_counts=True)
-    return occupied, counts
-
-
-def bucket_into_store(piece: Piece, scan: Scan, plan: TilePlan, halos: Halos, store_path: str) -> np.ndarray:
-    """Write one piece's rows, grouped by tile, to the store; return the tile row offsets and core counts."""
+def bucket_piece(piece: Piece, scan: Scan, grid: DensityGrid, store_path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Read one piece once, store its rows sorted by grid cell; return its occupied cells and row starts."""
     chunk = scan.read(piece)
-    bucketed = bucket_piece(chunk.records, chunk.xyz, piece.first, plan, halos)
-    TileStore.open(Path(store_path)).write_piece(piece.number, bucketed.rows)
-    return np.vstack([bucketed.offsets[:-1], bucketed.offsets[1:], bucketed.core_counts])
+    buckets = bucket_by_cell(chunk.records, chunk.xyz, piece.first, grid)
+    TileStore.open(Path(store_path)).write_piece(piece.number, buckets.rows)
+    return buckets.cells, buckets.starts
 
 
 def tile_seed(run_seed: int, tile_id: int) -> int:
@@ -63,19 +58,28 @@ def tile_seed(run_seed: int, tile_id: int) -> int:
     return int(np.random.SeedSequence([run_seed, tile_id]).generate_state(1)[0])
 
 
-def simplify_tile(job: TileJob) -> TileOutcome:
-    """Pick budget+reserve core points of one tile in priority order; save their rows and xyz to result_path."""
+def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
+    """Pick budget+reserve core points of one tile in priority order; save their rows and xyz to result_path.
+
+    Rows are positions in what `TileStore.load(job.slices)` returns, so the stitch can fetch the records.
+    """
     started = time.perf_counter()
     store = TileStore.open(Path(job.store_path))
-    points = store.load(job.slices)
-    scales = np.asarray(store.attrs["scales"], dtype=np.float64)
-    offsets = np.asarray(store.attrs["offsets"], dtype=np.float64)
-    ints = np.column_stack([points.records["X"], points.records["Y"], points.records["Z"]]).astype(np.float64)
-    xyz = ints * scales + offsets
-    centre = xyz[points.core].mean(axis=0)
-    tile = Tile(xyz - centre, points.core, centre, tile_seed(job.seed, job.tile_id))
+    xyz = decode_xyz(store, store.load(job.slices, job.cache_bytes).records)
+    seen = np.flatnonzero(plan.halo_mask(job.tile_id, xyz, job.overlap))
+    xyz = xyz[seen]
+    core = plan.core_mask(job.tile_id, xyz)
+    centre = xyz[core].mean(axis=0)
+    tile = Tile(xyz - centre, core, centre, tile_seed(job.seed, job.tile_id))
     selection = get_simplifier(job.method)(tile, min(job.budget + job.reserve, tile.core_count))
     temporary = f"{job.result_path}.tmp-{os.getpid()}.npz"
-    np.savez(temporary, rows=selection.indices, xyz=selection.xyz + centre)
+    np.savez(temporary, rows=seen[selection.indices], xyz=selection.xyz + centre)
     os.replace(temporary, job.result_path)
     return TileOutcome(job.tile_id, len(xyz), len(selection.indices), time.perf_counter() - started)
+
+
+def decode_xyz(store: TileStore, records: np.ndarray) -> np.ndarray:
+    """Float64 xyz of stored records, from the scale and offset the store was created with."""
+    scales = np.asarray(store.attrs["scales"], dtype=np.float64)
+    offsets = np.asarray(store.attrs["offsets"], dtype=np.float64)
+    return np.column_stack([records["X"], records["Y"], records["Z"]]).astype(np.float64) * scales + offsets

@@ -2,15 +2,15 @@
 import numpy as np
 from scipy.spatial import cKDTree
 
-from tiling.bucket import bucket_points
+from tiling.bucket import bucket_by_cell, row_ranges
 from tiling.plan import DensityGrid, plan_tiles
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
-from tiling.store import TileStore
+from tiling.store import Slice, TileStore
 
 RECORD = np.dtype([("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("intensity", "<u2")])
 
 
-def scan_chunks(n: int, chunk: int, seed: int = 0):
+def scan_pieces(n: int, size: int, seed: int = 0):
     rng = np.random.default_rng(seed)
     xyz = rng.uniform([0, 0, 0], [100, 60, 5], size=(n, 3))
     records = np.zeros(n, RECORD)
@@ -18,34 +18,52 @@ def scan_chunks(n: int, chunk: int, seed: int = 0):
         records[name] = np.rint(xyz[:, axis] * 1000)
     records["intensity"] = np.arange(n) % 65536
     xyz = np.column_stack([records[a] for a in "XYZ"]) / 1000.0
-    return [(records[s:s + chunk], xyz[s:s + chunk]) for s in range(0, n, chunk)], xyz
+    return [(start, records[start:start + size], xyz[start:start + size]) for start in range(0, n, size)], xyz
 
 
-def test_bucketing_partitions_cores_and_fills_halos(tmp_path):
-    chunks, xyz = scan_chunks(30_000, 7_000)
+def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path):
+    pieces, xyz = scan_pieces(30_000, 7_000)
     grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=20)
-    plan = plan_tiles(grid, grid.count([c[1] for c in chunks]), max_points=1_500)
     store = TileStore.create(tmp_path / "t.zarr", RECORD, {})
-    core_counts = bucket_points(chunks, plan, overlap=1.5, store=store, buffer_bytes=50_000)
-    assert core_counts.sum() == len(xyz)
-    seen_core = np.zeros(len(xyz), dtype=int)
+    index = []
+    counts = np.zeros(grid.shape[0] * grid.shape[1], dtype=np.int64)
+    for number, (first, records, points) in enumerate(pieces):
+        buckets = bucket_by_cell(records, points, first, grid)
+        store.write_piece(number, buckets.rows)
+        counts[buckets.cells] += buckets.counts
+        index.append(buckets)
+    plan = plan_tiles(grid, counts.reshape(grid.shape), max_points=1_500)
+    assert counts.sum() == len(xyz) and sum(t.count for t in plan.tiles) == len(xyz)
     reopened = TileStore.open(tmp_path / "t.zarr")
-    for tile_id in range(len(plan.tiles)):
-        points = reopened.load(tile_id)
-        seen_core[points.index[points.core]] += 1
-        assert points.core.sum() == core_counts[tile_id]
-        # records survive byte for byte and match their global index
-        assert (points.records["intensity"] == points.index % 65536).all()
+    seen_core = np.zeros(len(xyz), dtype=int)
+    overlap = 1.5
+    for tile_id, tile in enumerate(plan.tiles):
+        slices = [Slice(number, int(lo), int(hi)) for number, b in enumerate(index)
+                  for lo, hi in row_ranges(b.cells, b.starts, plan.halo_cell_ranges(tile_id, overlap))]
+        for cache in (0, 10**8):
+            stored = reopened.load(slices, cache)
+            # records survive byte for byte and match their global index; order is file order within a piece
+            assert (stored.records["intensity"] == stored.index % 65536).all()
+        p = xyz[stored.index]
+        np.testing.assert_array_equal(np.column_stack([stored.records[a] for a in "XYZ"]) / 1000.0, p)
+        core = plan.core_mask(tile_id, p)
+        seen = plan.halo_mask(tile_id, p, overlap)
+        assert core.sum() == tile.count
+        seen_core[stored.index[core]] += 1
         x0, y0, x1, y1 = plan.bounds(tile_id)
-        p = xyz[points.index]
-        in_core = (p[:, 0] >= x0) & (p[:, 0] < x1) & (p[:, 1] >= y0) & (p[:, 1] < y1)
-        expected_halo = ((p[:, 0] >= x0 - 1.5) & (p[:, 0] < x1 + 1.5) & (p[:, 1] >= y0 - 1.5) & (p[:, 1] < y1 + 1.5))
-        assert expected_halo.all()
-        assert (in_core[~points.core] == False).all()  # noqa: E712
-        # every point of the scan within the halo band is present
-        all_near = ((xyz[:, 0] >= x0 - 1.5) & (xyz[:, 0] < x1 + 1.5) & (xyz[:, 1] >= y0 - 1.5) & (xyz[:, 1] < y1 + 1.5))
-        assert set(np.flatnonzero(all_near)) == set(points.index.tolist())
+        near = (xyz[:, 0] >= x0 - overlap) & (xyz[:, 0] < x1 + overlap) & (xyz[:, 1] >= y0 - overlap) \
+            & (xyz[:, 1] < y1 + overlap)
+        assert set(np.flatnonzero(near)) == set(stored.index[seen].tolist())  # the whole halo, nothing more
     assert (seen_core == 1).all()
+
+
+def test_row_ranges_merge_adjacent_and_skip_empty():
+    cells = np.array([2, 3, 7, 9])
+    starts = np.array([0, 5, 6, 10, 12])
+    ranges = row_ranges(cells, starts, np.array([[0, 2], [2, 4], [4, 8], [8, 9], [9, 20]]))
+    np.testing.assert_array_equal(ranges, [[0, 12]])
+    np.testing.assert_array_equal(row_ranges(cells, starts, np.array([[2, 3], [7, 8]])), [[0, 5], [6, 10]])
+    assert row_ranges(cells, starts, np.array([[4, 7]])).shape == (0, 2)
 
 
 def test_first_accepted_skips_rejected_and_fills_in_when_short():

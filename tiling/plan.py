@@ -78,16 +78,28 @@ class TilePlan:
         """(T, 4) array of every tile's core rectangle."""
         return np.array([self.bounds(t) for t in range(len(self.tiles))], dtype=np.float64).reshape(-1, 4)
 
-    def neighbours(self, overlap: float) -> list[np.ndarray]:
-        """For each tile, the other tiles whose cores come within `overlap` of it (its halo sources)."""
-        b = self.all_bounds()
-        result = []
-        for t in range(len(b)):
-            near = ((b[:, 0] < b[t, 2] + overlap) & (b[:, 2] > b[t, 0] - overlap)
-                    & (b[:, 1] < b[t, 3] + overlap) & (b[:, 3] > b[t, 1] - overlap))
-            near[t] = False
-            result.append(np.flatnonzero(near))
-        return result
+    def halo_cell_ranges(self, tile_id: int, overlap: float) -> np.ndarray:
+        """Flat cell-id ranges [lo, hi), one per grid row, of every cell within `overlap` of the tile's core."""
+        t, ring = self.tiles[tile_id], int(np.ceil(overlap / self.grid.cell))
+        nx, ny = self.grid.shape
+        i0, i1 = max(t.i0 - ring, 0), min(t.i1 + ring, nx)
+        j0, j1 = max(t.j0 - ring, 0), min(t.j1 + ring, ny)
+        rows = np.arange(i0, i1, dtype=np.int64) * ny
+        return np.column_stack([rows + j0, rows + j1])
+
+    def core_mask(self, tile_id: int, xyz: np.ndarray) -> np.ndarray:
+        """Which points the tile owns: their cell lies in its cell rectangle (the same rule as tile_of)."""
+        t, ny = self.tiles[tile_id], self.grid.shape[1]
+        cell = self.grid.cell_of(xyz)
+        i, j = cell // ny, cell % ny
+        return (i >= t.i0) & (i < t.i1) & (j >= t.j0) & (j < t.j1)
+
+    def halo_mask(self, tile_id: int, xyz: np.ndarray, overlap: float) -> np.ndarray:
+        """Core points plus those within `overlap` of the core rectangle: what the tile's simplifier sees."""
+        x0, y0, x1, y1 = self.bounds(tile_id)
+        x, y = xyz[:, 0], xyz[:, 1]
+        near = (x >= x0 - overlap) & (x < x1 + overlap) & (y >= y0 - overlap) & (y < y1 + overlap)
+        return near | self.core_mask(tile_id, xyz)
 
 
 def plan_tiles(grid: DensityGrid, counts: np.ndarray, max_points: int) -> TilePlan:

@@ -1,30 +1,30 @@
-"""The temporary on-disk tile store (zarr v3): one uncompressed 2-D uint8 array per bucketed piece.
+"""The temporary on-disk store (zarr v3) of the bucketed scan: one uncompressed 2-D uint8 array per piece.
 
-A row is the raw LAS record bytes, then the point's global index (int64, little endian), then a core
-flag byte. Rows are grouped by tile, so one tile is a slice of each piece that touched it; the slices
-are read in piece order, which keeps a tile's points in file order whatever worker wrote them.
+A row is the raw LAS record bytes, then the point's global index (int64, little endian). Rows are
+sorted by grid cell, so a tile's core+halo is a few row ranges of each piece; ranges are read in
+piece order, which keeps a tile's points in file order whatever worker wrote them.
 """
 from __future__ import annotations
 
 import json
+from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import zarr
 
 ROW_CHUNK = 65536
-TAIL = 9  # index (8 bytes) + core flag (1 byte) after each record
+TAIL = 8  # the global index after each record
 
 
 @dataclass(frozen=True)
-class TilePoints:
-    """One tile's points as stored: raw records, global indices, and which are core (not halo)."""
+class StoredPoints:
+    """Points read back from the store: raw records and their global indices."""
 
     records: np.ndarray
     index: np.ndarray
-    core: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -36,12 +36,44 @@ class Slice:
     stop: int
 
 
-def encode_rows(records: np.ndarray, index: np.ndarray, core: np.ndarray) -> np.ndarray:
-    """Records plus global index and core flag, one uint8 row per point."""
+class PieceCache:
+    """Whole piece arrays kept in memory up to a byte budget, least recently used dropped first.
+
+    A tile needs a dozen row ranges of each piece it touches; zarr costs about a millisecond per
+    read, so reading each piece once per process and slicing in memory is what makes tiles cheap.
+    """
+
+    def __init__(self) -> None:
+        self._arrays: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
+        self._bytes = 0
+
+    def get(self, key: tuple[str, int], budget: int, read: Callable[[], np.ndarray]) -> np.ndarray:
+        """The cached piece, or read it and cache it if it fits the budget (evicting older pieces)."""
+        if key in self._arrays:
+            self._arrays.move_to_end(key)
+            return self._arrays[key]
+        for stale in [k for k in self._arrays if k[0] != key[0]]:  # pieces of an earlier run in this process
+            self._drop(stale)
+        array = read()
+        if array.nbytes <= budget:
+            while self._arrays and self._bytes + array.nbytes > budget:
+                self._drop(next(iter(self._arrays)))
+            self._arrays[key] = array
+            self._bytes += array.nbytes
+        return array
+
+    def _drop(self, key: tuple[str, int]) -> None:
+        self._bytes -= self._arrays.pop(key).nbytes
+
+
+PIECES = PieceCache()  # one per process: a Dask worker keeps it across the tasks of a run
+
+
+def encode_rows(records: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Records plus global index, one uint8 row per point."""
     rows = np.empty((len(records), records.dtype.itemsize + TAIL), dtype=np.uint8)
     rows[:, :-TAIL] = np.ascontiguousarray(records).view(np.uint8).reshape(len(records), records.dtype.itemsize)
-    rows[:, -TAIL:-1] = np.ascontiguousarray(index, dtype="<i8").view(np.uint8).reshape(len(index), 8)
-    rows[:, -1] = core
+    rows[:, -TAIL:] = np.ascontiguousarray(index, dtype="<i8").view(np.uint8).reshape(len(index), TAIL)
     return rows
 
 
@@ -86,10 +118,19 @@ class TileStore:
                                          compressors=None)
         array[:] = rows
 
-    def load(self, slices: Sequence[Slice]) -> TilePoints:
-        """A tile's points gathered from its slices, in the order given."""
-        parts = [self._group[f"p{s.piece}"][s.start:s.stop] for s in slices if s.stop > s.start]
+    def _read_piece(self, number: int) -> Callable[[], np.ndarray]:
+        return lambda: self._group[f"p{number}"][:]
+
+    def load(self, slices: Sequence[Slice], cache_bytes: int = 0) -> StoredPoints:
+        """The rows of the given slices, in the order given; whole pieces are cached up to cache_bytes."""
+        parts = []
+        for s in slices:
+            if cache_bytes > 0:
+                piece = PIECES.get((str(self.path), s.piece), cache_bytes, self._read_piece(s.piece))
+                parts.append(piece[s.start:s.stop])
+            else:
+                parts.append(self._group[f"p{s.piece}"][s.start:s.stop])
         rows = np.concatenate(parts) if parts else np.empty((0, self.record_dtype.itemsize + TAIL), np.uint8)
         records = np.ascontiguousarray(rows[:, :-TAIL]).view(self.record_dtype).ravel()
-        index = np.ascontiguousarray(rows[:, -TAIL:-1]).view("<i8").ravel()
-        return TilePoints(records, index, rows[:, -1].astype(bool))
+        index = np.ascontiguousarray(rows[:, -TAIL:]).view("<i8").ravel()
+        return StoredPoints(records, index)
