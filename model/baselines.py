@@ -7,7 +7,7 @@ import numpy as np
 from model.selection import Selection, Tile
 
 FPS_OVERSHOOT = 1.03  # extra samples asked of FPS over core+halo so enough of them land in the core
-VOXEL_CELL_TOLERANCE = 1e-4  # stop bisecting the cell size once the bracket is this tight (relative)
+VOXEL_COUNT_SLACK = 0.02  # the searched cell may give up to 2 % more voxels than the budget; the rest are trimmed
 
 
 def random_simplify(tile: Tile, budget: int) -> Selection:
@@ -71,37 +71,48 @@ def voxel_simplify(tile: Tile, budget: int) -> Selection:
     return Selection.of(tile, order[:budget])
 
 
-def _voxel_keys(points: np.ndarray, cell: float) -> np.ndarray:
-    """One int64 key per point naming its voxel (cells counted from the points' minimum corner)."""
-    ijk = np.floor(points / cell).astype(np.int64)
-    ijk -= ijk.min(axis=0)
-    span = ijk.max(axis=0) + 1
+def _voxel_keys(points: np.ndarray, cell: float, mins: np.ndarray, maxs: np.ndarray) -> np.ndarray:
+    """One int64 key per point naming its voxel; mins/maxs bound the points (floor is monotone, so
+    the lowest voxel index is floor(mins / cell) without another pass over the points)."""
+    low = np.floor(mins / cell)
+    span = (np.floor(maxs / cell) - low + 1).astype(np.int64)
+    ijk = (np.floor(points / cell) - low).astype(np.int64)
     return (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
 
 
-def _voxel_count(points: np.ndarray, cell: float) -> int:
-    return len(np.unique(_voxel_keys(points, cell)))
-
-
 def _cell_for_budget(points: np.ndarray, budget: int) -> float:
-    """The largest cell (to bisection precision) whose occupied-voxel count is at least the budget."""
-    extent = float(np.ptp(points, axis=0).max())
+    """A cell size whose occupied-voxel count is at least the budget and at most VOXEL_COUNT_SLACK above it.
+
+    The count falls roughly as a power of the cell size, so each step interpolates in log-log space
+    between a cell known to give enough voxels and one known to give too few (a few steps, not 20).
+    """
+    mins, maxs = points.min(axis=0), points.max(axis=0)
+    extent = float((maxs - mins).max())
     finest = max(extent / 2**20, 1e-6)  # keeps keys within int64 and below the coordinates' precision
-    if extent == 0 or _voxel_count(points, finest) < budget:
-        return finest
-    low, high = finest, max(extent, finest) * 2
-    while high / low > 1 + VOXEL_CELL_TOLERANCE:
-        mid = float(np.sqrt(low * high))
-        if _voxel_count(points, mid) >= budget:
-            low = mid
+
+    def count(cell: float) -> int:
+        return len(np.unique(_voxel_keys(points, cell, mins, maxs)))
+
+    low, low_count = finest, count(finest)
+    if extent == 0 or low_count <= budget * (1 + VOXEL_COUNT_SLACK):
+        return low
+    high, high_count = extent * 2, 1  # one voxel holds everything
+    if high_count >= budget:
+        return high
+    while high / low > 1 + 1e-9 and low_count > budget * (1 + VOXEL_COUNT_SLACK):
+        share = (np.log(low_count) - np.log(budget)) / (np.log(low_count) - np.log(high_count))
+        mid = float(np.exp(np.log(low) + np.clip(share, 0.05, 0.95) * np.log(high / low)))
+        mid_count = count(mid)
+        if mid_count >= budget:
+            low, low_count = mid, mid_count
         else:
-            high = mid
+            high, high_count = mid, mid_count
     return low
 
 
 def _voxel_representatives(points: np.ndarray, cell: float) -> np.ndarray:
     """Index of the point nearest its voxel centre, one per occupied voxel, in voxel-key order."""
-    keys = _voxel_keys(points, cell)
+    keys = _voxel_keys(points, cell, points.min(axis=0), points.max(axis=0))
     centres = (np.floor(points / cell) + 0.5) * cell
     distance = np.einsum("ij,ij->i", points - centres, points - centres)
     order = np.lexsort((distance, keys))

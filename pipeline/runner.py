@@ -68,39 +68,43 @@ def check_output(output: Path, overwrite: bool) -> None:
 def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: RunConfig, overwrite: bool = False,
              scratch: str | Path | None = None, show_progress: bool = True) -> RunReport:
     """Simplify one scan (one or more files) to `output`; the Python twin of `pipeline run`."""
-    started = time.perf_counter()
     clock = PhaseClock()
     config = config.validated()
     scan = Scan(inputs)
     output = Path(output) if output is not None else default_output(scan.paths[0])
     check_output(output, overwrite)
-    pieces = scan.pieces(config.chunk_points)
     scratch_dir = Path(tempfile.mkdtemp(prefix=f".{output.name}.scratch-", dir=scratch or output.parent))
     try:
         with local_cluster(config.workers, config.memory_limit) as client:
-            clock.lap("start cluster")
-            store = TileStore.create(scratch_dir / "tiles.zarr", scan.dtype,
-                                     {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
-            plan, slices = bucket_scan(client, scan, pieces, store, config, show_progress)
-            clock.lap("read and bucket")
-            total = sum(t.count for t in plan.tiles)
-            target = target_count(config.ratio, total)
-            if target == 0:
-                raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {total} points")
-            budgets = tile_budgets(np.array([t.count for t in plan.tiles]), config.ratio)
-            jobs = make_jobs(store, scratch_dir, plan, slices, budgets, config)
-            map_tasks(client, simplify_tile, jobs, plan, desc="simplify", show_progress=show_progress,
-                      weight=lambda outcome: outcome.points)
-            clock.lap("simplify tiles")
-        clock.lap("stop cluster")
-        parts = stitched_parts(store, plan, {job.tile_id: job for job in jobs}, budgets, config.seam_tolerance, scan)
-        meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], config.ratio, config.method,
-                          version("lidar-simplify"))
-        written = write_output(output, scan.header, target, parts, meta)
-        clock.lap("stitch and write")
+            written, tiles = simplify_scan(scan, output, config, scratch_dir, client, clock, show_progress)
     finally:
         shutil.rmtree(scratch_dir, ignore_errors=True)
-    return RunReport(output, total, written, len(jobs), time.perf_counter() - started, clock.laps)
+    return RunReport(output, scan.point_count, written, tiles, clock.total, clock.laps)
+
+
+def simplify_scan(scan: Scan, output: Path, config: RunConfig, scratch_dir: Path, client: Client, clock: "PhaseClock",
+                  show_progress: bool) -> tuple[int, int]:
+    """Bucket, plan, simplify every tile on the cluster, stitch and write; return points written and tiles."""
+    clock.lap("start cluster")
+    store = TileStore.create(scratch_dir / "tiles.zarr", scan.dtype,
+                             {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
+    plan, slices = bucket_scan(client, scan, scan.pieces(config.chunk_points), store, config, show_progress)
+    clock.lap("read and bucket")
+    counts = np.array([t.count for t in plan.tiles], dtype=np.int64)
+    target = target_count(config.ratio, int(counts.sum()))
+    if target == 0:
+        raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {counts.sum()} points")
+    budgets = tile_budgets(counts, config.ratio)
+    jobs = make_jobs(store, scratch_dir, plan, slices, budgets, config)
+    map_tasks(client, simplify_tile, jobs, plan, desc="simplify", show_progress=show_progress,
+              weight=lambda outcome: outcome.points)
+    clock.lap("simplify tiles")
+    parts = stitched_parts(store, plan, {job.tile_id: job for job in jobs}, budgets, config.seam_tolerance, scan)
+    meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], config.ratio, config.method,
+                      version("lidar-simplify"))
+    written = write_output(output, scan.header, target, parts, meta)
+    clock.lap("stitch and write")
+    return written, len(jobs)
 
 
 class PhaseClock:
@@ -108,7 +112,12 @@ class PhaseClock:
 
     def __init__(self) -> None:
         self.laps: dict[str, float] = {}
-        self._last = time.perf_counter()
+        self._first = self._last = time.perf_counter()
+
+    @property
+    def total(self) -> float:
+        """Seconds since the clock started."""
+        return time.perf_counter() - self._first
 
     def lap(self, phase: str) -> None:
         """Close the phase that just ended."""

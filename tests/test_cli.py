@@ -115,3 +115,11 @@ def test_config_preset_and_flags(tmp_path):
     result = cli("run", str(source), "--ratio", "0.1", "--config", str(config), "-o", str(tmp_path / "o.laz"))
     assert result.returncode == 0, result.stderr
     assert "200 of 2,000 points" in result.stdout
+
+
+def test_demo_simulates_and_simplifies(tmp_path):
+    result = cli("demo", "--out-dir", str(tmp_path), "--points", "40000", "--workers", "1")
+    assert result.returncode == 0, result.stderr
+    scan, simplified = laspy.read(tmp_path / "demo_street.laz"), laspy.read(tmp_path / "demo_street.simplified.laz")
+    assert len(scan.points) == 40_000 and len(simplified.points) == 4_000
+    assert np.isin(np.asarray(simplified.gps_time), np.asarray(scan.gps_time)).all()
