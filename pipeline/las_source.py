@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import copy
+import io
 import os
 import sys
 import tempfile
@@ -19,6 +20,49 @@ def describe_failure(path: Path, exc: BaseException) -> PipelineError:
     """One line naming the file and what laspy/lazrs said (PanicException included)."""
     detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
     return PipelineError(f"{path}: cannot read LAS/LAZ data: {detail}")
+
+
+VERSION_MINOR_OFFSET = 25  # header byte holding the LAS minor version
+
+
+class Las10AsLas11(io.RawIOBase):
+    """A LAS 1.0 file seen as 1.1, whose layout it shares (1.1 only named reserved header fields):
+    laspy reads 1.1 to 1.4, so this one header byte is all that stands between it and 1.0 files."""
+
+    def __init__(self, path: Path) -> None:
+        self._file = open(path, "rb")
+
+    def readable(self) -> bool:
+        return True
+
+    def seekable(self) -> bool:
+        return True
+
+    def seek(self, offset: int, whence: int = io.SEEK_SET) -> int:
+        return self._file.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+    def readinto(self, buffer: bytearray) -> int:
+        start = self._file.tell()
+        count = self._file.readinto(buffer)
+        if start <= VERSION_MINOR_OFFSET < start + count:
+            buffer[VERSION_MINOR_OFFSET - start] = 1
+        return count
+
+    def close(self) -> None:
+        self._file.close()
+        super().close()
+
+
+def open_las(path: Path) -> laspy.LasReader:
+    """laspy's reader on path, with LAS 1.0 files presented as 1.1."""
+    with open(path, "rb") as probe:
+        head = probe.read(VERSION_MINOR_OFFSET + 1)
+    if head[:4] == b"LASF" and len(head) > VERSION_MINOR_OFFSET and head[24:26] == b"\x01\x00":
+        return laspy.open(io.BufferedReader(Las10AsLas11(path)))
+    return laspy.open(path)
 
 
 @contextmanager
@@ -52,7 +96,7 @@ class LasSource:
         if not path.is_file():
             raise PipelineError(f"{path}: no such file")
         try:
-            with laspy.open(path) as reader:
+            with open_las(path) as reader:
                 self.header: laspy.LasHeader = copy.deepcopy(reader.header)
         except BaseException as exc:  # lazrs raises PanicException, a BaseException
             if is_fatal_signal(exc):
@@ -67,7 +111,7 @@ class LasSource:
     def read(self, start: int, count: int) -> np.ndarray:
         """Raw point records [start, start+count) in laspy's structured dtype (LAZ seeks by chunk table)."""
         try:
-            with native_panics_silenced(), laspy.open(self.path) as reader:
+            with native_panics_silenced(), open_las(self.path) as reader:
                 reader.seek(start)
                 records = reader.read_points(count).array
         except BaseException as exc:  # lazrs raises PanicException, a BaseException

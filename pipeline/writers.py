@@ -51,12 +51,15 @@ def write_output(path: Path, header: laspy.LasHeader, total: int, parts: Iterabl
 
 
 def _write_las(path: Path, header: laspy.LasHeader, parts: Iterable[TilePart], compress: bool) -> int:
-    """Stream the parts into a LAS/LAZ file; laspy fills in the count and bounds on close."""
+    """Stream the parts into a LAS/LAZ file, then the input's EVLRs; laspy fills in count and bounds on close."""
     written = 0
+    evlrs = header.evlrs
     with laspy.open(path, mode="w", header=header, do_compress=compress) as writer:
         for part in parts:
             writer.write_points(laspy.PackedPointRecord(part.records, header.point_format))
             written += len(part.records)
+        if evlrs:
+            writer.write_evlrs(evlrs)
     return written
 
 
