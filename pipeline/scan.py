@@ -38,6 +38,12 @@ class Piece:
     first: int
 
 
+def scaled_xyz(records: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """Float64 coordinates of raw LAS records: integer X/Y/Z times scale plus offset."""
+    ints = np.column_stack([records["X"], records["Y"], records["Z"]]).astype(np.float64)
+    return ints * scales + offsets
+
+
 def open_source(path: Path) -> LasSource | PlySource:
     """A reader for one file, chosen by suffix (COPC `.copc.laz` is LAZ)."""
     suffix = path.suffix.lower()
@@ -97,8 +103,7 @@ class Scan:
 
     def decode_xyz(self, records: np.ndarray) -> np.ndarray:
         """Float64 coordinates of raw records on this scan's grid."""
-        ints = np.column_stack([records["X"], records["Y"], records["Z"]]).astype(np.float64)
-        return ints * self.scales + self.offsets
+        return scaled_xyz(records, self.scales, self.offsets)
 
     def _to_grid(self, records: np.ndarray, source: LasSource | PlySource) -> np.ndarray:
         """Re-quantise another file's X/Y/Z integers onto the first file's scale and offset."""

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from model import Tile, get_simplifier
-from pipeline.scan import Piece, Scan
+from pipeline.scan import Piece, Scan, scaled_xyz
 from tiling.bucket import bucket_by_cell
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, TileStore
@@ -65,7 +65,9 @@ def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     """
     started = time.perf_counter()
     store = TileStore.open(Path(job.store_path))
-    xyz = decode_xyz(store, store.load(job.slices, job.cache_bytes).records)
+    attrs = store.attrs
+    xyz = scaled_xyz(store.load(job.slices, job.cache_bytes).records, np.asarray(attrs["scales"]),
+                     np.asarray(attrs["offsets"]))
     seen = np.flatnonzero(plan.halo_mask(job.tile_id, xyz, job.overlap))
     xyz = xyz[seen]
     core = plan.core_mask(job.tile_id, xyz)
@@ -76,10 +78,3 @@ def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     np.savez(temporary, rows=seen[selection.indices], xyz=selection.xyz + centre)
     os.replace(temporary, job.result_path)
     return TileOutcome(job.tile_id, len(xyz), len(selection.indices), time.perf_counter() - started)
-
-
-def decode_xyz(store: TileStore, records: np.ndarray) -> np.ndarray:
-    """Float64 xyz of stored records, from the scale and offset the store was created with."""
-    scales = np.asarray(store.attrs["scales"], dtype=np.float64)
-    offsets = np.asarray(store.attrs["offsets"], dtype=np.float64)
-    return np.column_stack([records["X"], records["Y"], records["Z"]]).astype(np.float64) * scales + offsets
