@@ -25,33 +25,37 @@ SUMMARY = re.compile(r"of ([\d,]+) points \((\d+) tiles, ([\d.]+) s")
 METHODS = ("fps", "voxel", "random")
 
 
-def best(command: list[str], repeat: int) -> Measured:
-    """The fastest of `repeat` runs (the machine is shared; the minimum is the least disturbed)."""
+def best(command: list[str], repeat: int) -> tuple[Measured, float]:
+    """The fastest of `repeat` runs (the minimum is the least disturbed: this machine's speed drifts by
+    up to 1.7x over minutes) and the slowest run's wall time, so the spread is visible."""
     runs = [measure(command) for _ in range(repeat)]
     for run in runs:
         if run.returncode != 0:
             sys.exit(f"failed: {' '.join(command)}\n{run.stderr}")
-    return min(runs, key=lambda run: run.seconds)
+    return min(runs, key=lambda run: run.seconds), max(run.seconds for run in runs)
 
 
 def pipeline_row(inputs: list[Path], method: str, workers: int, ratio: float, out_dir: Path, repeat: int) -> str:
     output = out_dir / f"{method}-{workers}.laz"
     command = [sys.executable, "-m", "pipeline.cli", "run", *map(str, inputs), "--ratio", str(ratio), "-o",
                str(output), "--method", method, "--workers", str(workers), "--overwrite"]
-    run = best(command, repeat)
+    run, slowest = best(command, repeat)
     points, tiles, own_seconds = SUMMARY.search(run.stdout).groups()
     n = int(points.replace(",", ""))
-    return (f"| pipeline run --method {method} | {workers} | {n:,} | {run.seconds:.2f} | {n / run.seconds:,.0f} "
+    return (f"| pipeline run --method {method} | {workers} | {n:,} | {run.seconds:.2f} ({slowest:.2f}) "
+            f"| {n / run.seconds:,.0f} "
             f"| {float(own_seconds):.2f} | {n / float(own_seconds):,.0f} | {run.peak_rss_bytes / 2**20:,.0f} |")
 
 
 def open3d_row(operation: str, inputs: list[Path], ratio: float, repeat: int) -> str:
-    run = best([sys.executable, str(HERE / "open3d_peer.py"), operation, str(ratio), *map(str, inputs)], repeat)
+    run, slowest = best([sys.executable, str(HERE / "open3d_peer.py"), operation, str(ratio), *map(str, inputs)],
+                        repeat)
     result = json.loads(run.stdout.strip().splitlines()[-1])
     n, seconds = result["points"], result["seconds"]
     name = "voxel_down_sample" if operation == "voxel" else "farthest_point_down_sample"
     files = "bcts_1..4" if len(inputs) > 1 else inputs[0].name
-    return (f"| Open3D {name} ({files}) | 1 process | {n:,} | {run.seconds:.2f} | {n / run.seconds:,.0f} "
+    return (f"| Open3D {name} ({files}) | 1 process | {n:,} | {run.seconds:.2f} ({slowest:.2f}) "
+            f"| {n / run.seconds:,.0f} "
             f"| {seconds:.2f} | {n / seconds:,.0f} | {run.peak_rss_bytes / 2**20:,.0f} |")
 
 
@@ -66,8 +70,9 @@ def main() -> None:
     missing = [p for p in inputs if not p.exists()]
     if missing:
         sys.exit(f"missing input: {missing[0]} (pass --data)")
-    print(f"ratio {args.ratio}; wall = whole command (imports, read, write); own = the pipeline's or the "
-          f"library call's own time; RSS = peak summed over the process tree")
+    print(f"ratio {args.ratio}, best of {args.repeat}; wall = whole command (imports, read, write), slowest "
+          f"run in brackets; own = the pipeline's or the library call's own time; RSS = peak summed over the "
+          f"process tree")
     print("| what | workers | points | wall s | points/s (wall) | own s | points/s (own) | peak RSS MiB |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     with tempfile.TemporaryDirectory() as out_dir:

@@ -6,7 +6,7 @@ import numpy as np
 
 from model.selection import Selection, Tile
 
-FPS_OVERSHOOT = 1.03  # extra samples asked of FPS over core+halo so enough of them land in the core
+FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core
 VOXEL_COUNT_SLACK = 0.02  # the searched cell may give up to 2 % more voxels than the budget; the rest are trimmed
 
 

@@ -68,9 +68,9 @@ def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     attrs = store.attrs
     xyz = scaled_xyz(store.load(job.slices, job.cache_bytes).records, np.asarray(attrs["scales"]),
                      np.asarray(attrs["offsets"]))
-    seen = np.flatnonzero(plan.halo_mask(job.tile_id, xyz, job.overlap))
-    xyz = xyz[seen]
     core = plan.core_mask(job.tile_id, xyz)
+    seen = np.flatnonzero(plan.halo_mask(core, job.tile_id, xyz, job.overlap))
+    xyz, core = xyz[seen], core[seen]
     centre = xyz[core].mean(axis=0)
     tile = Tile(xyz - centre, core, centre, tile_seed(job.seed, job.tile_id))
     selection = get_simplifier(job.method)(tile, min(job.budget + job.reserve, tile.core_count))

@@ -47,7 +47,7 @@ def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path):
         p = xyz[stored.index]
         np.testing.assert_array_equal(np.column_stack([stored.records[a] for a in "XYZ"]) / 1000.0, p)
         core = plan.core_mask(tile_id, p)
-        seen = plan.halo_mask(tile_id, p, overlap)
+        seen = plan.halo_mask(core, tile_id, p, overlap)
         assert core.sum() == tile.count
         seen_core[stored.index[core]] += 1
         x0, y0, x1, y1 = plan.bounds(tile_id)

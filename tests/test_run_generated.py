@@ -110,3 +110,14 @@ def test_toronto3d_ply_maps_to_point_format_7(tmp_path):
     np.testing.assert_array_equal(las.classification, src["scalar_Label"].astype(np.uint8))
     np.testing.assert_allclose(las.scan_angle * 0.006, src["scalar_ScanAngleRank"], atol=0.0031)
     np.testing.assert_array_equal(las.scalar_Reflectance, src["scalar_Reflectance"])
+
+
+def test_zarr_output_replaced_only_with_overwrite(tmp_path, dense_patch):
+    out = tmp_path / "o.zarr"
+    pipeline.run(dense_patch, out, ratio=0.01, workers=1)
+    with pytest.raises(pipeline.PipelineError, match="already exists"):
+        pipeline.run(dense_patch, out, ratio=0.02, workers=1)
+    assert zarr.open_group(str(out), mode="r")["x"].shape == (1_200,)
+    pipeline.run(dense_patch, out, ratio=0.02, workers=1, overwrite=True)
+    assert zarr.open_group(str(out), mode="r")["x"].shape == (2_400,)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["o.zarr"]  # no temporary or scratch left behind

@@ -33,6 +33,9 @@ def test_multi_file_input_partitions_and_gives_exact_count(tmp_path):
     kept, source = raw_rows(las.points.array), raw_rows(whole.points.array)
     assert np.isin(kept, source).all()
     assert len(np.unique(kept)) == len(kept)
+    again = tmp_path / "lone-1-worker.laz"
+    pipeline.run(parts, again, ratio=0.05, method="fps", workers=1)
+    assert again.read_bytes() == out.read_bytes()
 
 
 @pytest.mark.parametrize("name", ["las_with_several_extra_byte_bloc.laz", "autzen_trim_7.las"])

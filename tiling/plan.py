@@ -94,12 +94,11 @@ class TilePlan:
         i, j = cell // ny, cell % ny
         return (i >= t.i0) & (i < t.i1) & (j >= t.j0) & (j < t.j1)
 
-    def halo_mask(self, tile_id: int, xyz: np.ndarray, overlap: float) -> np.ndarray:
+    def halo_mask(self, core: np.ndarray, tile_id: int, xyz: np.ndarray, overlap: float) -> np.ndarray:
         """Core points plus those within `overlap` of the core rectangle: what the tile's simplifier sees."""
         x0, y0, x1, y1 = self.bounds(tile_id)
         x, y = xyz[:, 0], xyz[:, 1]
-        near = (x >= x0 - overlap) & (x < x1 + overlap) & (y >= y0 - overlap) & (y < y1 + overlap)
-        return near | self.core_mask(tile_id, xyz)
+        return core | ((x >= x0 - overlap) & (x < x1 + overlap) & (y >= y0 - overlap) & (y < y1 + overlap))
 
 
 def plan_tiles(grid: DensityGrid, counts: np.ndarray, max_points: int) -> TilePlan:
