@@ -4,6 +4,7 @@ from __future__ import annotations
 import fpsample
 import numpy as np
 
+from model.geometry import curvature, knn, local_frames
 from model.selection import Selection, Tile
 
 FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core
@@ -119,3 +120,19 @@ def _voxel_representatives(points: np.ndarray, cell: float) -> np.ndarray:
     first = np.ones(len(order), dtype=bool)
     first[1:] = keys[order][1:] != keys[order][:-1]
     return order[first]
+
+
+def tcp_simplify(tile: Tile, budget: int) -> Selection:
+    """Top curvature points (the paper's TCP baseline): core points by decreasing curvature kappa.
+
+    kappa is estimated over core+halo, so a core point at the tile border sees its neighbours across
+    the seam. Exact ties (flat patches have kappa exactly 0) fall in a seeded random order, so a prefix
+    is still the coarser result and the flat tail is a uniform sample.
+    """
+    budget = min(budget, tile.core_count)
+    if budget == 0:
+        return Selection.of(tile, np.empty(0, dtype=np.int64))
+    eigenvalues, _ = local_frames(tile.xyz, knn(tile.xyz))
+    core = np.random.default_rng(tile.seed).permutation(np.flatnonzero(tile.core))
+    order = core[np.argsort(-curvature(eigenvalues)[core], kind="stable")]
+    return Selection.of(tile, order[:budget])

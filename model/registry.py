@@ -2,12 +2,21 @@
 from __future__ import annotations
 
 from model.baselines import fps_simplify, random_simplify, voxel_simplify
-from model.selection import Simplifier
+from model.selection import Selection, Simplifier, Tile
+
+
+def learned_simplify(tile: Tile, budget: int) -> Selection:
+    """The trained network; torch is imported on first use, so other methods' workers never load it."""
+    from model.learned import learned_simplify as simplify
+
+    return simplify(tile, budget)
+
 
 _SIMPLIFIERS: dict[str, Simplifier] = {
     "fps": fps_simplify,
     "voxel": voxel_simplify,
     "random": random_simplify,
+    "learned": learned_simplify,
 }
 METHODS = tuple(_SIMPLIFIERS)
 

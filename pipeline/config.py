@@ -9,9 +9,9 @@ from pathlib import Path
 from typing import Any
 
 import configs
+from model.registry import METHODS
 from pipeline.errors import PipelineError
 
-METHODS = ("fps", "voxel", "random")
 _SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([KMGT]i?B|B)?\s*$", re.IGNORECASE)
 _UNITS = {"b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
           "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40}

@@ -1,0 +1,66 @@
+"""CD, CE and RE of the learned simplifier against FPS on the saved TOSCA test split (for the model card).
+
+    python bench/tosca_eval.py [--weights model/weights/tosca.pt] [--data DIR] [--ratios 0.2,0.1,0.05]
+
+Each test mesh's vertices are simplified once per method at the largest ratio; smaller ratios are
+prefixes of that priority order (both methods are progressive), as the pipeline would produce them.
+Prints a Markdown table of the means over the test meshes (lower is better for all three).
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from model import Tile, get_simplifier
+from model.geometry import point_features
+from model.learned import WEIGHTS, learned_simplify
+from model.meshes import list_meshes, load_mesh, mesh_name
+from model.metrics import quality
+
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "meshes" / "tosca"
+
+
+def evaluate(vertices: np.ndarray, ratios: list[float], weights: Path) -> dict[tuple[str, float], np.ndarray]:
+    """(method, ratio) -> [CD, CE, RE] for one mesh."""
+    xyz = vertices - vertices.mean(axis=0)
+    tile = Tile(xyz, np.ones(len(xyz), dtype=bool), np.zeros(3), seed=0)
+    largest = int(round(max(ratios) * len(xyz)))
+    orders = {"fps": get_simplifier("fps")(tile, largest), "learned": learned_simplify(tile, largest, weights)}
+    reference = point_features(xyz)
+    scores = {}
+    for method, selection in orders.items():
+        for ratio in ratios:
+            count = int(round(ratio * len(xyz)))
+            q = quality(xyz, selection.xyz[:count], reference)
+            scores[(method, ratio)] = np.array([q.chamfer, q.curvature_error, q.roughness_error])
+    return scores
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--weights", type=Path, default=WEIGHTS)
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    parser.add_argument("--ratios", default="0.2,0.1,0.05")
+    args = parser.parse_args()
+    ratios = [float(r) for r in args.ratios.split(",")]
+    test = torch.load(args.weights, map_location="cpu", weights_only=False)["record"]["test"]
+    paths = {mesh_name(p): p for p in list_meshes(args.data)}
+    totals: dict[tuple[str, float], list[np.ndarray]] = {}
+    for name in test:
+        for key, value in evaluate(np.asarray(load_mesh(paths[name]).vertices, dtype=np.float64), ratios,
+                                   args.weights).items():
+            totals.setdefault(key, []).append(value)
+    print(f"TOSCA test split ({len(test)} meshes: {', '.join(test)}); means; CD on shapes as stored (mean convention)")
+    print("| ratio | method | CD | CE | RE |")
+    print("| ---: | --- | ---: | ---: | ---: |")
+    for ratio in ratios:
+        for method in ("fps", "learned"):
+            cd, ce, re = np.mean(totals[(method, ratio)], axis=0)
+            print(f"| {ratio} | {method} | {cd:.5g} | {ce:.5f} | {re:.5f} |")
+
+
+if __name__ == "__main__":
+    main()

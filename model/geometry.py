@@ -1,0 +1,180 @@
+"""Point geometry of the paper (section 3.1), vectorised: kNN, PCA frames, curvature, mean curvature, roughness.
+
+One kNN query feeds every feature. Offsets and covariances are formed in float64 from the input
+coordinates, so the features are the same for centred and uncentred (float64) scans; callers should
+still centre tiles, since coordinates stored as float32 far from the origin have already lost precision.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+CHUNK_POINTS = 200_000  # points per batch of kNN results and covariances: about 80 MB of float64 offsets at k=16
+NEAR_DOUBLE = 1e-6  # |r| above 1 - this means a nearly repeated eigenvalue: LAPACK instead of the closed form
+ROUND_OFF = 1e-12  # eigenvalues below this share of the trace are solver error (~1e-14 measured): exactly 0
+
+
+@dataclass(frozen=True)
+class Neighbours:
+    """The k nearest neighbours of each point, nearest first, the point itself in column 0."""
+
+    indices: np.ndarray  # (n, k) int64
+    sq_dist: np.ndarray  # (n, k) float32 squared distances, ascending along a row, column 0 is 0
+
+    @property
+    def k(self) -> int:
+        """Neighbours per point (the requested k, clipped to the point count)."""
+        return self.indices.shape[1]
+
+
+def knn(xyz: np.ndarray, k: int = 16) -> Neighbours:
+    """The k nearest neighbours of every point (k clipped to n), queried in chunks to bound memory.
+
+    Points are queried in the tree's leaf order: consecutive queries then walk the same nodes, which
+    ran 2.4-3x faster than querying 1 M random points in their own order. Among exact duplicates the
+    tree may list a twin before the point itself; such rows are fixed so column 0 is always the point
+    (all of them are at distance 0, so the distance order holds).
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    n = len(xyz)
+    k = min(k, n)
+    indices = np.empty((n, k), dtype=np.int64)
+    sq_dist = np.empty((n, k), dtype=np.float32)
+    if k == 0:
+        return Neighbours(indices, sq_dist)
+    tree = cKDTree(xyz)
+    for start in range(0, n, CHUNK_POINTS):
+        rows = tree.indices[start : start + CHUNK_POINTS]
+        dist, idx = tree.query(xyz[rows], k, workers=-1)
+        indices[rows] = idx.reshape(len(rows), k)
+        sq_dist[rows] = np.square(dist).reshape(len(rows), k)
+    twins = np.flatnonzero(indices[:, 0] != np.arange(n))
+    if len(twins):
+        listed = indices[twins]
+        found = listed == twins[:, None]
+        has = found.any(axis=1)  # else more than k twins: every column is a twin at distance 0
+        listed[has, found[has].argmax(axis=1)] = listed[has, 0]
+        listed[:, 0] = twins
+        indices[twins] = listed
+    return Neighbours(indices, sq_dist)
+
+
+def local_frames(xyz: np.ndarray, nbrs: Neighbours) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (n, 3) float64 ascending and unit normals (n, 3) float32 of each point's covariance.
+
+    As in the paper, C_i = sum_j (p_j - p_i)(p_j - p_i)^T over the neighbours j of i, centred on p_i
+    rather than on the neighbourhood mean (Pauly's surface variation): a point standing off the surface
+    of its neighbours then gets a higher curvature, which is what the paper's curvature and roughness
+    measures score. The normal is the eigenvector of the smallest eigenvalue; its sign is arbitrary.
+    Covariances are solved in closed form in float64 (float32 LAPACK erred by ~5e-8 in curvature, more
+    than the curvature of a flat patch with 0.1 mm noise), chunk by chunk.
+    """
+    xyz = np.asarray(xyz, dtype=np.float64)
+    n = len(xyz)
+    eigenvalues = np.zeros((n, 3))
+    normals = np.zeros((n, 3), dtype=np.float32)
+    buffer = np.empty((min(n, CHUNK_POINTS), nbrs.k, 3))  # reused: fresh pages per chunk cost more than the maths
+    for start in range(0, n, CHUNK_POINTS):
+        stop = min(start + CHUNK_POINTS, n)
+        offsets = buffer[: stop - start]
+        np.take(xyz, nbrs.indices[start:stop], axis=0, out=offsets)  # faster than fancy indexing
+        offsets -= xyz[start:stop, None, :]
+        covariance = offsets.transpose(0, 2, 1) @ offsets
+        eigenvalues[start:stop], normals[start:stop] = _symmetric_eigen(covariance)
+    return eigenvalues, normals
+
+
+def _symmetric_eigen(covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Ascending eigenvalues and the smallest one's unit eigenvector of (m, 3, 3) symmetric PSD matrices.
+
+    The trigonometric solution of the characteristic cubic (on trace-normalised matrices, so any scale
+    works) matched LAPACK to ~1e-14 of the trace and ran 5x faster; the normal is the longest cross
+    product of two rows of C - l0 I. Eigenvalues below ROUND_OFF of the trace are set to 0, so exactly
+    flat patches have kappa exactly 0 (ties, not noise). Where two eigenvalues nearly coincide (arccos loses precision and
+    the cross products vanish: points on a line, isotropic blobs, duplicates) LAPACK's eigh is used.
+    """
+    trace = np.trace(covariance, axis1=1, axis2=2)
+    scale = np.where(trace > 0, trace, 1.0)
+    c = covariance / scale[:, None, None]
+    q = np.trace(c, axis1=1, axis2=2) / 3
+    xx, yy, zz = c[:, 0, 0] - q, c[:, 1, 1] - q, c[:, 2, 2] - q
+    xy, xz, yz = c[:, 0, 1], c[:, 0, 2], c[:, 1, 2]
+    p = np.sqrt((xx * xx + yy * yy + zz * zz + 2 * (xy * xy + xz * xz + yz * yz)) / 6)
+    det = xx * (yy * zz - yz * yz) - xy * (xy * zz - yz * xz) + xz * (xy * yz - yy * xz)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = det / (2 * p**3)
+    closed = np.abs(r) < 1 - NEAR_DOUBLE  # False for NaN (p = 0) too
+    phi = np.arccos(np.where(closed, r, 0)) / 3
+    largest = q + 2 * p * np.cos(phi)
+    smallest = q + 2 * p * np.cos(phi + 2 * np.pi / 3)
+    values = np.stack([smallest, 3 * q - smallest - largest, largest], axis=1)
+    rows = c - smallest[:, None, None] * np.eye(3)
+    crosses = np.cross(rows[:, [0, 0, 1]], rows[:, [1, 2, 2]])
+    lengths = np.einsum("mij,mij->mi", crosses, crosses)
+    best = lengths.argmax(axis=1)
+    picked = np.arange(len(c))
+    vectors = crosses[picked, best] / np.sqrt(np.where(closed, lengths[picked, best], 1.0))[:, None]
+    if not closed.all():
+        values[~closed], frames = np.linalg.eigh(c[~closed])
+        vectors[~closed] = frames[:, :, 0]
+    values[values < ROUND_OFF] = 0
+    return values * scale[:, None], vectors
+
+
+def curvature(eigenvalues: np.ndarray) -> np.ndarray:
+    """kappa = l0 / (l0 + l1 + l2) (float32, in [0, 1/3]); 0 where the sum is 0 (all neighbours coincide)."""
+    total = eigenvalues.sum(axis=1)
+    return np.divide(eigenvalues[:, 0], total, out=np.zeros(len(total)), where=total > 0).astype(np.float32)
+
+
+def bandwidth(nbrs: Neighbours) -> np.ndarray:
+    """Per-point Gaussian bandwidth h_i: the squared distance to i's (k/2)-th nearest neighbour.
+
+    The paper's h is one constant; a per-point h tied to the local spacing keeps the weights the same
+    shape at any scale (scale-invariant mean curvature) and at any density (LiDAR density varies a
+    hundredfold with range, and one constant per tile would make features depend on the tiling). The
+    median neighbour's distance rather than the mean ignores a few far neighbours, and the kNN rows
+    are sorted, so it costs nothing. Where half the neighbours coincide with the point, h is inf
+    (uniform weights).
+    """
+    h = nbrs.sq_dist[:, nbrs.k // 2].copy() if nbrs.k else np.zeros(0, dtype=np.float32)
+    h[h == 0] = np.inf
+    return h
+
+
+def mean_curvature(kappa: np.ndarray, nbrs: Neighbours, h: np.ndarray | float) -> np.ndarray:
+    """K_i = sum_j kappa_j w_ij / sum_j w_ij, w_ij = exp(-d_ij^2 / h_i), over i's neighbours (itself included).
+
+    `h` is per point (see `bandwidth`) or one constant as in the paper; the point's own weight is 1,
+    so the denominator never vanishes.
+    """
+    h = np.broadcast_to(np.asarray(h, dtype=np.float32), (len(kappa),))
+    weights = np.exp(-nbrs.sq_dist / h[:, None])
+    return (np.einsum("nk,nk->n", kappa[nbrs.indices], weights) / weights.sum(axis=1)).astype(np.float32)
+
+
+def roughness(kappa: np.ndarray, kbar: np.ndarray) -> np.ndarray:
+    """R_i = |kappa_i - K_i|: how much a point's curvature departs from its neighbourhood's."""
+    return np.abs(kappa - kbar)
+
+
+@dataclass(frozen=True)
+class PointFeatures:
+    """Every per-point feature of section 3.1, from one kNN query."""
+
+    nbrs: Neighbours
+    normals: np.ndarray  # (n, 3) float32 unit, sign arbitrary
+    kappa: np.ndarray  # (n,) float32
+    mean_curvature: np.ndarray  # (n,) float32
+    roughness: np.ndarray  # (n,) float32
+
+
+def point_features(xyz: np.ndarray, k: int = 16) -> PointFeatures:
+    """Normals, curvature, mean curvature (per-point bandwidth) and roughness of every point."""
+    nbrs = knn(xyz, k)
+    eigenvalues, normals = local_frames(xyz, nbrs)
+    kappa = curvature(eigenvalues)
+    kbar = mean_curvature(kappa, nbrs, bandwidth(nbrs))
+    return PointFeatures(nbrs, normals, kappa, kbar, roughness(kappa, kbar))

@@ -1,0 +1,50 @@
+"""The trained network behind the simplifier interface (`--method learned`)."""
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from model.network import LearnedSimplifier, latent_fps, mean_operator, normalise
+from model.selection import Selection, Tile
+
+WEIGHTS = Path(__file__).resolve().parent / "weights" / "tosca.pt"
+GRAPH_NEIGHBOURS = 16
+
+
+@lru_cache(maxsize=2)
+def load_model(path: Path = WEIGHTS) -> LearnedSimplifier:
+    """The network with trained weights, in inference mode (BatchNorm uses its running statistics)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no trained weights (train them with `pipeline train`)")
+    model = LearnedSimplifier()
+    model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True)["state_dict"])
+    return model.eval()
+
+
+@torch.no_grad()
+def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS) -> Selection:
+    """Latent FPS over core+halo until `budget` core picks, then each pick refined over its neighbourhood.
+
+    The input is normalised exactly as in training (centre, unit ball); refined positions are mapped back.
+    """
+    budget = min(budget, tile.core_count)
+    if budget == 0:
+        return Selection.of(tile, np.empty(0, dtype=np.int64))
+    model = load_model(weights)
+    xyz64 = torch.from_numpy(np.ascontiguousarray(tile.xyz, dtype=np.float64))
+    normalised, centre, scale = normalise(xyz64)
+    xyz = normalised.float()
+    neighbours = torch.from_numpy(cKDTree(xyz.numpy()).query(xyz.numpy(), min(GRAPH_NEIGHBOURS, len(xyz)))[1]
+                                  .reshape(len(xyz), -1).astype(np.int64))
+    features = model.projector(xyz, mean_operator(neighbours, len(xyz)))
+    core = torch.from_numpy(tile.core)
+    core_index = np.flatnonzero(tile.core)
+    start = int(core_index[np.random.default_rng(tile.seed).integers(len(core_index))])
+    order = latent_fps(features, budget, start, keep=core)
+    picks = order[core[order]][:budget]
+    refined = model.refiner(xyz, features, picks, neighbours).double() * scale + centre
+    return Selection(picks.numpy().astype(np.int64), refined.numpy())
