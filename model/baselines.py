@@ -126,8 +126,8 @@ def tcp_simplify(tile: Tile, budget: int) -> Selection:
     """Top curvature points (the paper's TCP baseline): core points by decreasing curvature kappa.
 
     kappa is estimated over core+halo, so a core point at the tile border sees its neighbours across
-    the seam. Exact ties (flat patches have kappa exactly 0) fall in a seeded random order, so a prefix
-    is still the coarser result and the flat tail is a uniform sample.
+    the seam. A prefix is the coarser result. Exact ties (exactly flat patches have kappa 0) fall in a
+    seeded random order, so such points come as a uniform sample, not in storage order.
     """
     budget = min(budget, tile.core_count)
     if budget == 0:

@@ -1,7 +1,7 @@
 """Method names to simplifier callables: the one switch behind `--method`."""
 from __future__ import annotations
 
-from model.baselines import fps_simplify, random_simplify, voxel_simplify
+from model.baselines import fps_simplify, random_simplify, tcp_simplify, voxel_simplify
 from model.selection import Selection, Simplifier, Tile
 
 
@@ -16,6 +16,7 @@ _SIMPLIFIERS: dict[str, Simplifier] = {
     "fps": fps_simplify,
     "voxel": voxel_simplify,
     "random": random_simplify,
+    "tcp": tcp_simplify,
     "learned": learned_simplify,
 }
 METHODS = tuple(_SIMPLIFIERS)

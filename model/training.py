@@ -93,7 +93,8 @@ def train(data: Path, out: Path, settings: TrainSettings, show_progress: bool = 
             sums += [loss.item(), chamfer.item(), error.item()]
         schedule.step()
         mean = sums / len(train_names)
-        record.history.append({"epoch": epoch + 1, "loss": mean[0], "chamfer": mean[1], "curvature_error": mean[2]})
+        record.history.append({"epoch": epoch + 1, "loss": float(mean[0]), "chamfer": float(mean[1]),
+                               "curvature_error": float(mean[2])})
         summary = f"loss {mean[0]:.5f} (CD {mean[1]:.5f}, CE {mean[2]:.4f})"
         bar.set_postfix_str(summary)
         log(f"epoch {epoch + 1}/{settings.epochs}: {summary}, lr {schedule.get_last_lr()[0]:.6f}")

@@ -1,0 +1,66 @@
+"""The shipped weights behind the simplifier interface, alone and inside `pipeline run`."""
+from __future__ import annotations
+
+import laspy
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+import pipeline
+from model import Tile, get_simplifier
+from model.learned import WEIGHTS, load_model
+from tests.conftest import shared_file
+
+
+def street_tile(n: int = 6_000, seed: int = 1) -> Tile:
+    """A facade with a balcony slab above a kerbed road: planes, edges and a step."""
+    rng = np.random.default_rng(seed)
+    road = np.column_stack([rng.uniform(0, 20, n // 2), rng.uniform(0, 8, n // 2), np.zeros(n // 2)])
+    road[road[:, 1] > 6, 2] = 0.15  # kerb and sidewalk
+    wall = np.column_stack([rng.uniform(0, 20, n // 3), np.full(n // 3, 8.0), rng.uniform(0, 10, n // 3)])
+    rest = n - len(road) - len(wall)
+    slab = np.column_stack([rng.uniform(5, 10, rest), rng.uniform(6.5, 8, rest), np.full(rest, 4.0)])
+    xyz = np.vstack([road, wall, slab]) + rng.normal(scale=0.005, size=(n, 3))
+    core = xyz[:, 0] < 18
+    return Tile(xyz - xyz.mean(0), core, np.zeros(3), seed=5)
+
+
+def test_weights_ship_with_their_record():
+    assert WEIGHTS.is_file() and WEIGHTS.stat().st_size < 1_000_000
+    record = torch.load(WEIGHTS, map_location="cpu", weights_only=False)["record"]
+    assert len(record["train"]) == 64 and len(record["test"]) == 16
+    assert not set(record["train"]) & set(record["test"])
+    assert record["history"][-1]["loss"] < record["history"][0]["loss"]
+    assert not load_model().training
+
+
+def test_exact_budget_deterministic_and_close_to_the_source():
+    tile = street_tile()
+    learned = get_simplifier("learned")
+    first = learned(tile, 500)
+    assert len(first.indices) == 500 == len(np.unique(first.indices))
+    assert tile.core[first.indices].all()
+    again = learned(tile, 500)
+    np.testing.assert_array_equal(first.indices, again.indices)
+    np.testing.assert_array_equal(first.xyz, again.xyz)
+    coarse = learned(tile, 100)
+    np.testing.assert_array_equal(coarse.indices, first.indices[:100])  # a prefix is the coarser result
+    moved = np.linalg.norm(first.xyz - tile.xyz[first.indices], axis=1)
+    spacing = cKDTree(tile.xyz).query(tile.xyz, 2)[0][:, 1].mean()
+    assert np.median(moved) < 5 * spacing  # refinement nudges, it does not relocate
+
+
+def test_pipeline_run_learned_keeps_every_attribute(tmp_path):
+    source_path = shared_file("autzen_trim.las")
+    out = tmp_path / "learned.las"
+    pipeline.run(source_path, out, ratio=0.05, method="learned", workers=2, tile_size=60)
+    source, result = laspy.read(source_path), laspy.read(out)
+    assert len(result.points) == int(np.floor(0.05 * len(source.points) + 0.5))
+    # X, Y, Z are the first 12 bytes of every point format; everything after them must be a source point's
+    tail = lambda a: np.ascontiguousarray(a).view(np.uint8).reshape(len(a), -1)[:, 12:].copy().view(  # noqa: E731
+        np.dtype((np.void, a.dtype.itemsize - 12))).ravel()
+    assert np.isin(tail(result.points.array), tail(source.points.array)).all()
+    distance, _ = cKDTree(np.column_stack([source.x, source.y, source.z])).query(
+        np.column_stack([result.x, result.y, result.z]))
+    assert np.median(distance) < 1.0
