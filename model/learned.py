@@ -8,11 +8,14 @@ import numpy as np
 import torch
 from scipy.spatial import cKDTree
 
+from model.baselines import fps_simplify
 from model.network import LearnedSimplifier, latent_fps, mean_operator, normalise
 from model.selection import Selection, Tile
 
 WEIGHTS = Path(__file__).resolve().parent / "weights" / "tosca.pt"
 GRAPH_NEIGHBOURS = 16
+REDUCED_DIMS = 8  # fpsample's bucket FPS handles at most 8 dimensions
+PCA_SAMPLE = 4096  # about this many feature rows (an even stride) fix the principal axes
 
 
 @lru_cache(maxsize=2)
@@ -25,8 +28,21 @@ def load_model(path: Path = WEIGHTS) -> LearnedSimplifier:
     return model.eval()
 
 
+def reduced_latent_order(features: np.ndarray, core: np.ndarray, budget: int, seed: int) -> np.ndarray:
+    """Core picks of FPS in the top-8 principal components of the 64-d features, by fpsample's bucket FPS.
+
+    Exact latent FPS costs O(n*m*64) in a Python loop (1.6 s for a 35k-point tile at 0.1); this ran
+    0.08 s on the same tile, keeping 93 % of the feature variance. The paper's FPS is over all 64
+    dimensions: `exact=True` in learned_simplify keeps that.
+    """
+    centred = features - features.mean(axis=0)
+    _, _, axes = np.linalg.svd(centred[:: max(1, len(centred) // PCA_SAMPLE)], full_matrices=False)
+    reduced = np.ascontiguousarray(centred @ axes[:REDUCED_DIMS].T, dtype=np.float32)
+    return fps_simplify(Tile(reduced, core, np.zeros(reduced.shape[1]), seed), budget).indices
+
+
 @torch.no_grad()
-def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS) -> Selection:
+def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS, exact: bool = False) -> Selection:
     """Latent FPS over core+halo until `budget` core picks, then each pick refined over its neighbourhood.
 
     The input is normalised exactly as in training (centre, unit ball); refined positions are mapped back.
@@ -41,10 +57,13 @@ def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS) -> Select
     neighbours = torch.from_numpy(cKDTree(xyz.numpy()).query(xyz.numpy(), min(GRAPH_NEIGHBOURS, len(xyz)))[1]
                                   .reshape(len(xyz), -1).astype(np.int64))
     features = model.projector(xyz, mean_operator(neighbours, len(xyz)))
-    core = torch.from_numpy(tile.core)
-    core_index = np.flatnonzero(tile.core)
-    start = int(core_index[np.random.default_rng(tile.seed).integers(len(core_index))])
-    order = latent_fps(features, budget, start, keep=core)
-    picks = order[core[order]][:budget]
+    if exact:
+        core = torch.from_numpy(tile.core)
+        core_index = np.flatnonzero(tile.core)
+        start = int(core_index[np.random.default_rng(tile.seed).integers(len(core_index))])
+        order = latent_fps(features, budget, start, keep=core)
+        picks = order[core[order]][:budget]
+    else:
+        picks = torch.from_numpy(reduced_latent_order(features.numpy(), tile.core, budget, tile.seed))
     refined = model.refiner(xyz, features, picks, neighbours).double() * scale + centre
     return Selection(picks.numpy().astype(np.int64), refined.numpy())

@@ -64,3 +64,12 @@ def test_pipeline_run_learned_keeps_every_attribute(tmp_path):
     distance, _ = cKDTree(np.column_stack([source.x, source.y, source.z])).query(
         np.column_stack([result.x, result.y, result.z]))
     assert np.median(distance) < 1.0
+
+
+def test_exact_latent_fps_mode_keeps_the_contract():
+    from model.learned import learned_simplify
+
+    tile = street_tile(2_000)
+    first = learned_simplify(tile, 150, exact=True)
+    assert len(np.unique(first.indices)) == 150 and tile.core[first.indices].all()
+    np.testing.assert_array_equal(learned_simplify(tile, 40, exact=True).indices, first.indices[:40])
