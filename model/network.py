@@ -30,7 +30,7 @@ def mean_operator(neighbours: torch.Tensor, count: int) -> torch.Tensor:
     """Sparse (n, n) matrix whose product with features averages each point's neighbours (self excluded)."""
     rows = torch.arange(count).repeat_interleave(neighbours.shape[1] - 1)
     cols = neighbours[:, 1:].reshape(-1)
-    values = torch.full((cols.numel(),), 1.0 / (neighbours.shape[1] - 1))
+    values = torch.full((cols.numel(),), 1.0 / max(neighbours.shape[1] - 1, 1))  # a lone point has no neighbours
     return torch.sparse_coo_tensor(torch.stack([rows, cols]), values, (count, count),
                                    check_invariants=False).coalesce()
 
