@@ -6,14 +6,12 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
 from model.baselines import fps_simplify
-from model.network import LearnedSimplifier, latent_fps, mean_operator, normalise
+from model.network import LearnedSimplifier, knn_graph, latent_fps, mean_operator, normalise
 from model.selection import Selection, Tile
 
 WEIGHTS = Path(__file__).resolve().parent / "weights" / "tosca.pt"
-GRAPH_NEIGHBOURS = 16
 REDUCED_DIMS = 8  # fpsample's bucket FPS handles at most 8 dimensions
 PCA_SAMPLE = 4096  # about this many feature rows (an even stride) fix the principal axes
 
@@ -54,8 +52,7 @@ def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS, exact: bo
     xyz64 = torch.from_numpy(np.ascontiguousarray(tile.xyz, dtype=np.float64))
     normalised, centre, scale = normalise(xyz64)
     xyz = normalised.float()
-    neighbours = torch.from_numpy(cKDTree(xyz.numpy()).query(xyz.numpy(), min(GRAPH_NEIGHBOURS, len(xyz)))[1]
-                                  .reshape(len(xyz), -1).astype(np.int64))
+    neighbours = knn_graph(xyz.numpy())
     features = model.projector(xyz, mean_operator(neighbours, len(xyz)))
     if exact:
         core = torch.from_numpy(tile.core)

@@ -12,10 +12,14 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 from torch import nn
 
+from model.geometry import knn
+
 FEATURES = 64
+GRAPH_NEIGHBOURS = 16
 ATTENTION_DIM = 16
 
 
@@ -24,6 +28,11 @@ def normalise(xyz: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tens
     centre = xyz.mean(dim=0)
     scale = (xyz - centre).norm(dim=1).max().clamp_min(1e-12)
     return (xyz - centre) / scale, centre, scale
+
+
+def knn_graph(points: np.ndarray) -> torch.Tensor:
+    """(n, k) indices of each point's GRAPH_NEIGHBOURS nearest points, itself first even among duplicates."""
+    return torch.from_numpy(knn(points, GRAPH_NEIGHBOURS).indices)
 
 
 def mean_operator(neighbours: torch.Tensor, count: int) -> torch.Tensor:

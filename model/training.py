@@ -14,14 +14,12 @@ from typing import Callable
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 from tqdm import tqdm
 
 from model.losses import mean_curvature, total_loss
 from model.meshes import list_meshes, load_mesh, mesh_name, stratified_split
-from model.network import LearnedSimplifier, normalise
+from model.network import LearnedSimplifier, knn_graph, normalise
 
-GRAPH_NEIGHBOURS = 16
 CHECKPOINT_EVERY = 10  # epochs; a long run killed midway keeps its last checkpoint
 
 
@@ -51,18 +49,13 @@ class TrainRecord:
     seconds: float = 0.0
 
 
-def graph(points: np.ndarray) -> torch.Tensor:
-    """The k=16 nearest neighbours of each point, itself first."""
-    return torch.from_numpy(cKDTree(points).query(points, GRAPH_NEIGHBOURS)[1].astype(np.int64))
-
-
 def training_step(model: LearnedSimplifier, vertices: np.ndarray, settings: TrainSettings,
                   rng: np.random.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Loss of one random draw of a mesh's vertices at one random ratio."""
     chosen = rng.choice(len(vertices), size=min(settings.points, len(vertices)), replace=False)
     xyz, _, _ = normalise(torch.from_numpy(vertices[chosen].astype(np.float32)))
     count = max(1, int(round(rng.uniform(settings.ratio_min, settings.ratio_max) * len(xyz))))
-    _, refined = model(xyz, graph(xyz.numpy()), count, int(rng.integers(len(xyz))))
+    _, refined = model(xyz, knn_graph(xyz.numpy()), count, int(rng.integers(len(xyz))))
     with torch.no_grad():
         source_curvature = mean_curvature(xyz)
     return total_loss(xyz, source_curvature, refined, settings.curvature_weight)

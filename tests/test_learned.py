@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import laspy
 import numpy as np
-import pytest
 import torch
 from scipy.spatial import cKDTree
 

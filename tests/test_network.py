@@ -7,15 +7,15 @@ import torch
 import trimesh
 
 from model.losses import adaptive_chamfer, curvature_error, curvature_weights, mean_curvature
-from model.network import LearnedSimplifier, Projector, Refiner, latent_fps, mean_operator, normalise
-from model.training import TrainSettings, graph, training_step
+from model.network import LearnedSimplifier, Projector, Refiner, knn_graph, latent_fps, mean_operator, normalise
+from model.training import TrainSettings, training_step
 
 
 @pytest.fixture
 def cloud() -> tuple[torch.Tensor, torch.Tensor]:
     rng = np.random.default_rng(0)
     xyz, _, _ = normalise(torch.from_numpy(rng.normal(size=(600, 3)).astype(np.float32)))
-    return xyz, graph(xyz.numpy())
+    return xyz, knn_graph(xyz.numpy())
 
 
 def test_normalise_fits_the_unit_ball():

@@ -1,14 +1,12 @@
 """End to end on real scans from ../shared/data: counts, multi-file input, attributes, VLRs, formats."""
 from __future__ import annotations
 
-from pathlib import Path
 
 import laspy
 import numpy as np
 import pytest
 import xarray as xr
 import zarr
-from scipy.spatial import cKDTree
 
 import pipeline
 from tests.conftest import shared_file
