@@ -1,7 +1,7 @@
 """Output writers: LAS/LAZ with the input's header, or a zarr v3 group of one array per dimension."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterable
 
@@ -34,7 +34,6 @@ class OutputMeta:
     ratio: float
     method: str
     version: str
-    extra: dict = field(default_factory=dict)
 
 
 def write_output(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[TilePart], meta: OutputMeta) -> int:
@@ -102,6 +101,6 @@ def _write_zarr(path: Path, header: laspy.LasHeader, total: int, parts: Iterable
         "crs_wkt": meta.crs_wkt, "sources": meta.sources, "ratio": meta.ratio, "method": meta.method,
         "software_version": meta.version, "las_version": str(header.version), "point_format": point_format.id,
         "scales": [float(s) for s in header.scales], "offsets": [float(o) for o in header.offsets],
-        "tile_index": tile_index, **meta.extra,
+        "tile_index": tile_index,
     })
     return start

@@ -74,10 +74,6 @@ class TilePlan:
         (ox, oy), c = self.grid.origin, self.grid.cell
         return ox + t.i0 * c, oy + t.j0 * c, ox + t.i1 * c, oy + t.j1 * c
 
-    def all_bounds(self) -> np.ndarray:
-        """(T, 4) array of every tile's core rectangle."""
-        return np.array([self.bounds(t) for t in range(len(self.tiles))], dtype=np.float64).reshape(-1, 4)
-
     def halo_cell_ranges(self, tile_id: int, overlap: float) -> np.ndarray:
         """Flat cell-id ranges [lo, hi), one per grid row, of every cell within `overlap` of the tile's core."""
         t, ring = self.tiles[tile_id], int(np.ceil(overlap / self.grid.cell))
@@ -88,11 +84,8 @@ class TilePlan:
         return np.column_stack([rows + j0, rows + j1])
 
     def core_mask(self, tile_id: int, xyz: np.ndarray) -> np.ndarray:
-        """Which points the tile owns: their cell lies in its cell rectangle (the same rule as tile_of)."""
-        t, ny = self.tiles[tile_id], self.grid.shape[1]
-        cell = self.grid.cell_of(xyz)
-        i, j = cell // ny, cell % ny
-        return (i >= t.i0) & (i < t.i1) & (j >= t.j0) & (j < t.j1)
+        """Which points the tile owns (tile_of's rule, so ownership has one definition)."""
+        return self.tile_of(xyz) == tile_id
 
     def halo_mask(self, core: np.ndarray, tile_id: int, xyz: np.ndarray, overlap: float) -> np.ndarray:
         """Core points plus those within `overlap` of the core rectangle: what the tile's simplifier sees."""
