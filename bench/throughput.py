@@ -2,7 +2,7 @@
 
     python bench/throughput.py [--data DIR] [--ratio 0.1] [--repeat 1]
 
-Runs every method with 1 and 2 workers on bcts_1..4 (2.83 M points, one scan in four files), then
+Runs each method (learned, fps, voxel, random) with 1 and 2 workers on bcts_1..4 (2.83 M points, one scan in four files), then
 Open3D's voxel_down_sample on the same points and farthest_point_down_sample on bcts_1 alone (Open3D's
 FPS is O(N*M): on all 2.83 M points it would run for about 20 minutes here). Prints a Markdown table:
 end-to-end wall time of the whole command (imports, reading, writing included), the pipeline's own
@@ -22,7 +22,7 @@ from proctree import Measured, measure
 HERE = Path(__file__).resolve().parent
 DEFAULT_DATA = HERE.parents[1] / "shared" / "data" / "lidar"
 SUMMARY = re.compile(r"of ([\d,]+) points \((\d+) tiles, ([\d.]+) s")
-METHODS = ("fps", "voxel", "random")
+METHODS = ("learned", "fps", "voxel", "random")
 
 
 def best(command: list[str], repeat: int) -> tuple[Measured, float]:
@@ -64,6 +64,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding bcts_1..4.laz")
     parser.add_argument("--ratio", type=float, default=0.1)
     parser.add_argument("--repeat", type=int, default=1, help="runs per row; the fastest is reported")
+    parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated pipeline methods to run")
     parser.add_argument("--skip-open3d", action="store_true")
     args = parser.parse_args()
     inputs = [args.data / f"bcts_{i}.laz" for i in range(1, 5)]
@@ -76,7 +77,7 @@ def main() -> None:
     print("| what | workers | points | wall s | points/s (wall) | own s | points/s (own) | peak RSS MiB |")
     print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
     with tempfile.TemporaryDirectory() as out_dir:
-        for method in METHODS:
+        for method in args.methods.split(","):
             for workers in (1, 2):
                 print(pipeline_row(inputs, method, workers, args.ratio, Path(out_dir), args.repeat), flush=True)
     if not args.skip_open3d:

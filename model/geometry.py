@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+from pykdtree.kdtree import KDTree
 
 CHUNK_POINTS = 200_000  # points per batch of kNN results and covariances: about 80 MB of float64 offsets at k=16
 NEAR_DOUBLE = 1e-6  # |r| above 1 - this means a nearly repeated eigenvalue: LAPACK instead of the closed form
@@ -29,27 +29,46 @@ class Neighbours:
         return self.indices.shape[1]
 
 
+def _spread_bits(values: np.ndarray) -> np.ndarray:
+    """Put bit i of each 21-bit integer at bit 3i, for interleaving three coordinates."""
+    v = values.astype(np.uint64) & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        v = (v | v << np.uint64(shift)) & np.uint64(mask)
+    return v
+
+
+def morton_order(xyz: np.ndarray) -> np.ndarray:
+    """Indices sorting points along a Z-order curve over their bounding cube (2**21 steps per axis)."""
+    low = xyz.min(axis=0)
+    span = max(float((xyz.max(axis=0) - low).max()), 1e-300)
+    steps = ((xyz - low) * ((2**21 - 1) / span)).astype(np.uint64)
+    code = _spread_bits(steps[:, 0]) | _spread_bits(steps[:, 1]) << np.uint64(1) | _spread_bits(steps[:, 2]) << np.uint64(2)
+    return np.argsort(code, kind="stable")
+
+
 def knn(xyz: np.ndarray, k: int = 16) -> Neighbours:
     """The k nearest neighbours of every point (k clipped to n), queried in chunks to bound memory.
 
-    Points are queried in the tree's leaf order, so consecutive queries walk the same nodes: 2.4-3x
-    faster on 1 M points in random order, the same speed on a scan in file order. Among exact
-    duplicates the tree may list a twin before the point itself; such rows are fixed so column 0 is
-    always the point (all of them are at distance 0, so the distance order holds).
+    pykdtree, not scipy's cKDTree: 1.3-1.6x faster on one thread from 38k to 700k scan points, with
+    the same distances. Queries go in Morton order so consecutive ones walk the same nodes (700k
+    shuffled points: 7.0 s in input order, 1.6 s with the sort). Among exact duplicates the tree may list
+    a twin before the point itself; such rows are fixed so column 0 is always the point.
     """
-    xyz = np.asarray(xyz, dtype=np.float64)
+    xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     n = len(xyz)
     k = min(k, n)
     indices = np.empty((n, k), dtype=np.int64)
     sq_dist = np.empty((n, k), dtype=np.float32)
     if k == 0:
         return Neighbours(indices, sq_dist)
-    tree = cKDTree(xyz)
+    tree = KDTree(xyz)
+    order = morton_order(xyz)
     for start in range(0, n, CHUNK_POINTS):
-        rows = tree.indices[start : start + CHUNK_POINTS]
-        dist, idx = tree.query(xyz[rows], k, workers=-1)
+        rows = order[start : start + CHUNK_POINTS]
+        dist, idx = tree.query(xyz[rows], k, sqr_dists=True)
         indices[rows] = idx.reshape(len(rows), k)
-        sq_dist[rows] = np.square(dist).reshape(len(rows), k)
+        sq_dist[rows] = dist.reshape(len(rows), k)
     twins = np.flatnonzero(indices[:, 0] != np.arange(n))
     if len(twins):
         listed = indices[twins]

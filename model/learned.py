@@ -18,12 +18,13 @@ PCA_SAMPLE = 4096  # about this many feature rows (an even stride) fix the princ
 
 @lru_cache(maxsize=2)
 def load_model(path: Path = WEIGHTS) -> LearnedSimplifier:
-    """The network with trained weights, in inference mode (BatchNorm uses its running statistics)."""
+    """The network with trained weights, in inference mode, BatchNorm (running statistics) folded in."""
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no trained weights (train them with `pipeline train`)")
     model = LearnedSimplifier()
     model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True)["state_dict"])
-    return model.eval()
+    model.eval().projector.fold_batchnorm()
+    return model
 
 
 def reduced_latent_order(features: np.ndarray, core: np.ndarray, budget: int, seed: int) -> np.ndarray:

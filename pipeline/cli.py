@@ -45,7 +45,7 @@ def cli() -> None:
 @click.option("--ratio", "-r", type=float, required=True, help="Fraction of points to keep, in (0, 1].")
 @click.option("--output", "-o", type=click.Path(path_type=Path), default=None,
               help="Output file: .las, .laz or .zarr. [default: ./<input>.simplified.laz]")
-@click.option("--method", "-m", type=click.Choice(METHODS), default=None, help="Simplifier. [default: fps]")
+@click.option("--method", "-m", type=click.Choice(METHODS), default=None, help="Simplifier. [default: learned]")
 @click.option("--tile-size", type=float, default=None, help="Nominal tile edge in metres. [default: 50]")
 @click.option("--overlap", type=float, default=None, help="Halo width around each tile in metres. [default: 2]")
 @click.option("--max-tile-points", type=int, default=None, help="Split tiles with more core points. [default: 200000]")

@@ -22,7 +22,7 @@ class RunConfig:
     """Everything one `pipeline run` needs besides its inputs and output path."""
 
     ratio: float = 0.1
-    method: str = "fps"
+    method: str = "learned"
     tile_size: float = 50.0
     overlap: float = 2.0
     max_tile_points: int = 200_000

@@ -185,7 +185,17 @@ def stitched_parts(store: TileStore, plan: TilePlan, jobs: dict[int, TileJob], b
         rejected = rejections.get(tile_id, np.empty(0, dtype=np.int64))
         chosen = first_accepted(len(rows), int(budgets[tile_id]), rejected)
         records = store.load(job.slices, job.cache_bytes).records[rows[chosen]]
-        yield TilePart(tile_id, plan.bounds(tile_id), _moved_to(records, xyz[chosen], scan))
+        records = _moved_to(records, xyz[chosen], scan)
+        yield TilePart(tile_id, _covering(plan.bounds(tile_id), scan.decode_xyz(records)), records)
+
+
+def _covering(rect: tuple[float, float, float, float], xyz: np.ndarray) -> tuple[float, float, float, float]:
+    """The tile's core rectangle grown to hold its kept points: a refined point may move slightly outside."""
+    if len(xyz) == 0:
+        return rect
+    low, high = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+    return (min(rect[0], float(low[0])), min(rect[1], float(low[1])),
+            max(rect[2], float(high[0])), max(rect[3], float(high[1])))
 
 
 def _moved_to(records: np.ndarray, xyz: np.ndarray, scan: Scan) -> np.ndarray:

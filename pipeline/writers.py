@@ -18,7 +18,7 @@ ZARR_CHUNK = 1_000_000
 
 @dataclass(frozen=True)
 class TilePart:
-    """One tile's kept points, in output order, and the tile's core rectangle."""
+    """One tile's kept points, in output order, and their XY bounds (the core rectangle, grown to hold them)."""
 
     tile_id: int
     bounds: tuple[float, float, float, float]

@@ -8,6 +8,7 @@ from model.geometry import (
     curvature,
     knn,
     local_frames,
+    morton_order,
     mean_curvature,
     point_features,
     roughness,
@@ -198,3 +199,20 @@ def test_k_is_clipped_to_the_point_count():
 def test_curvature_is_zero_for_zero_eigenvalues():
     kappa = curvature(np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.0, 1.0, 3.0]]))
     np.testing.assert_allclose(kappa, [0, 1 / 3, 0])
+
+
+def test_knn_matches_brute_force_on_shuffled_points():
+    xyz = np.random.default_rng(11).normal(size=(3_000, 3)) * [50.0, 20.0, 1.0]
+    found = knn(xyz, 8)
+    squared = ((xyz[:, None, :] - xyz[None, :, :]) ** 2).sum(-1)
+    expected = np.sort(squared, axis=1)[:, :8]
+    assert np.allclose(found.sq_dist, expected, rtol=1e-5, atol=1e-9)
+    assert np.allclose(squared[np.arange(len(xyz))[:, None], found.indices], expected, rtol=1e-5, atol=1e-9)
+
+
+def test_morton_order_is_a_permutation_that_keeps_neighbours_close():
+    grid = np.stack(np.meshgrid(*[np.arange(16.0)] * 3, indexing="ij"), -1).reshape(-1, 3)
+    shuffled = grid[np.random.default_rng(3).permutation(len(grid))]
+    order = morton_order(shuffled)
+    assert np.array_equal(np.sort(order), np.arange(len(grid)))
+    assert np.abs(np.diff(shuffled[order], axis=0)).sum(1).mean() < 2.5  # shuffled: about 16

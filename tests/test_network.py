@@ -133,3 +133,16 @@ def test_torch_mean_curvature_matches_geometry_module():
     xyz = np.random.default_rng(2).normal(size=(1500, 3)).astype(np.float32)
     np.testing.assert_allclose(mean_curvature(torch.from_numpy(xyz)).numpy(), point_features(xyz).mean_curvature,
                                atol=1e-5)
+
+
+def test_folding_batchnorm_keeps_the_projector_outputs(cloud):
+    xyz, neighbours = cloud
+    projector = Projector()
+    projector.train()(xyz, mean_operator(neighbours, len(xyz)))  # move the running statistics off their defaults
+    projector.eval()
+    with torch.no_grad():
+        before = projector(xyz, mean_operator(neighbours, len(xyz)))
+        projector.fold_batchnorm()
+        after = projector(xyz, mean_operator(neighbours, len(xyz)))
+    assert len(projector.pointwise) == 6
+    assert torch.allclose(before, after, atol=1e-5)

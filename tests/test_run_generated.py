@@ -95,7 +95,7 @@ def write_toronto3d_ply(path: Path, n: int = 20_000) -> np.ndarray:
 def test_toronto3d_ply_maps_to_point_format_7(tmp_path):
     vertex = write_toronto3d_ply(tmp_path / "street.ply")
     out = tmp_path / "street.laz"
-    pipeline.run(tmp_path / "street.ply", out, ratio=0.25, workers=1, tile_size=10)
+    pipeline.run(tmp_path / "street.ply", out, ratio=0.25, method="fps", workers=1, tile_size=10)
     las = laspy.read(out)
     assert las.header.version == "1.4" and las.header.point_format.id == 7
     assert len(las.points) == 5_000

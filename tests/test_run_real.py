@@ -70,14 +70,16 @@ def test_las_laz_zarr_round_trips_agree(tmp_path):
         np.testing.assert_array_equal(group[name][:], np.asarray(las[name]), err_msg=name)
     for axis in "xyz":
         np.testing.assert_allclose(group[axis][:], np.asarray(las[axis]), atol=1e-9)
-    assert group.attrs["ratio"] == 0.2 and group.attrs["method"] == "fps"
+    assert group.attrs["ratio"] == 0.2 and group.attrs["method"] == "learned"  # the default
     assert "NAD" in group.attrs["crs_wkt"] or "Lambert" in group.attrs["crs_wkt"]
     index = group.attrs["tile_index"]
     assert sum(t["count"] for t in index) == len(las.points)
     assert [t["start"] for t in index] == list(np.cumsum([0] + [t["count"] for t in index])[:-1])
     for entry in index:  # a tile's slice lies within its bounds
         x = group["x"][entry["start"]:entry["start"] + entry["count"]]
-        assert (x >= entry["bounds"][0]).all() and (x < entry["bounds"][2]).all()
+        y = group["y"][entry["start"]:entry["start"] + entry["count"]]
+        assert (x >= entry["bounds"][0]).all() and (x <= entry["bounds"][2]).all()
+        assert (y >= entry["bounds"][1]).all() and (y <= entry["bounds"][3]).all()
     dataset = xr.open_zarr(outputs[".zarr"], consolidated=False)
     assert dataset.sizes["point"] == len(las.points)
     np.testing.assert_array_equal(dataset["intensity"].values, np.asarray(las.intensity))
