@@ -33,3 +33,23 @@ def atomic_output(final: Path) -> Iterator[Path]:
     except BaseException:
         _remove(temporary)
         raise
+
+
+def remove_stale_temporaries(final: Path) -> None:
+    """Delete temporaries of `final` left by runs that were killed (their process is gone)."""
+    for pattern in (f".{final.name}.tmp-*", f".{final.name}.old-*"):
+        for leftover in final.parent.glob(pattern):
+            pid = leftover.name.rsplit("-", 1)[-1]
+            if pid.isdigit() and not _alive(int(pid)):
+                _remove(leftover)
+
+
+def _alive(pid: int) -> bool:
+    """Whether a process with this id exists (a permission error means it does)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

@@ -58,13 +58,16 @@ def cli() -> None:
 @click.option("--seed", type=int, default=None, help="Seed for the random choices. [default: 0]")
 @click.option("--scratch", type=click.Path(path_type=Path), default=None,
               help="Folder for temporary tiles. [default: the output's folder]")
+@click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
+              help="Run on this existing Dask cluster (workers need the inputs and --scratch at the same paths).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 @click.option("--verbose", "-v", is_flag=True, help="Also print the time of each phase.")
 def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, method: str | None,
                 tile_size: float | None, overlap: float | None, max_tile_points: int | None,
                 seam_tolerance: float | None, workers: int | None, memory_limit: str | None, config: str | None,
-                seed: int | None, scratch: Path | None, overwrite: bool, quiet: bool, verbose: bool) -> None:
+                seed: int | None, scratch: Path | None, scheduler: str | None, overwrite: bool, quiet: bool,
+                verbose: bool) -> None:
     """Simplify INPUTS (LAS/LAZ/COPC/PLY files that together form one scan) to one output."""
     from pipeline.runner import run_scan
 
@@ -72,11 +75,12 @@ def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, met
                             max_tile_points=max_tile_points, seam_tolerance=seam_tolerance, workers=workers,
                             memory_limit=memory_limit, seed=seed)
     report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch,
-                      show_progress=not quiet and sys.stderr.isatty())
+                      show_progress=not quiet and sys.stderr.isatty(), scheduler=scheduler)
     if not quiet:
         rate = report.input_points / max(report.seconds, 1e-9)
+        resumed = f", {report.resumed_tiles} finished earlier" if report.resumed_tiles else ""
         click.echo(f"{report.output}: {report.output_points:,} of {report.input_points:,} points "
-                   f"({report.tiles} tiles, {report.seconds:.1f} s, {rate:,.0f} points/s)")
+                   f"({report.tiles} tiles{resumed}, {report.seconds:.1f} s, {rate:,.0f} points/s)")
     if verbose:
         click.echo("  ".join(f"{phase}: {seconds:.2f} s" for phase, seconds in report.phases.items()))
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 import logging
 import time
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, ContextManager, Iterator, Sequence
 
 import dask
 from dask.distributed import Client, LocalCluster, WorkerPlugin, as_completed
@@ -33,6 +33,31 @@ def local_cluster(workers: int, memory_limit: str) -> Iterator[Client]:
             yield client
 
 
+@contextmanager
+def connect(scheduler: str, connect_s: float = 10.0, workers_s: float = 60.0) -> Iterator[Client]:
+    """A client on an existing dask.distributed cluster at `scheduler` (tcp://host:port) with a worker.
+
+    Its workers must import this package and see the inputs and the scratch folder at the same paths.
+    """
+    quiet_dask_logs()
+    try:
+        client = Client(scheduler, timeout=f"{connect_s}s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise PipelineError(f"{scheduler}: cannot reach the Dask scheduler ({exc})") from exc
+    with client:
+        try:
+            client.wait_for_workers(1, timeout=workers_s)
+        except TimeoutError as exc:
+            raise PipelineError(f"{scheduler}: the Dask scheduler has no workers") from exc
+        client.register_plugin(QuietWorkerLogs())
+        yield client
+
+
+def cluster(workers: int, memory_limit: str, scheduler: str | None) -> ContextManager[Client]:
+    """The scheduler's cluster when one is named, else a fresh local one."""
+    return connect(scheduler) if scheduler else local_cluster(workers, memory_limit)
+
+
 def quiet_dask_logs() -> None:
     """Keep Dask's own logs to real errors: a failed task is reported once, by us, as one line."""
     logging.getLogger("distributed").setLevel(logging.ERROR)
@@ -50,10 +75,12 @@ def map_tasks(client: Client, function: Callable, items: Sequence[Any], *shared:
               show_progress: bool, weight: Callable[[Any], int] = lambda result: 0) -> list[Any]:
     """function(item, *shared) for every item on the cluster; results in item order.
 
-    `shared` values are scattered once to every worker rather than shipped with each task; the bar
-    counts finished tasks and, through `weight`, points per second.
+    `shared` values become one task each that every task depends on, so a worker fetches them once;
+    unlike scattered data, the scheduler can recompute them if the workers holding them die. Tasks
+    of a lost worker are rerun elsewhere (Dask allows 3 losses a task). The bar counts finished tasks
+    and, through `weight`, points per second.
     """
-    shared_futures = [client.scatter(value, broadcast=True) for value in shared]
+    shared_futures = [client.submit(_same, value, pure=False) for value in shared]
     futures = [client.submit(function, item, *shared_futures, pure=False) for item in items]
     position = {future.key: i for i, future in enumerate(futures)}
     results: list[Any] = [None] * len(items)
@@ -74,3 +101,8 @@ def map_tasks(client: Client, function: Callable, items: Sequence[Any], *shared:
                 bar.set_postfix_str(f"{points / max(time.perf_counter() - started, 1e-9):,.0f} points/s")
             bar.update()
     return results
+
+
+def _same(value: Any) -> Any:
+    """The value itself: a task that holds `value`, so losing its result loses nothing."""
+    return value

@@ -2,9 +2,8 @@
 from __future__ import annotations
 
 import os
-import shutil
-import tempfile
 import time
+from contextlib import nullcontext
 from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
@@ -16,9 +15,11 @@ from dask.distributed import Client
 from pipeline.config import RunConfig, parse_size
 from pipeline.crs import crs_wkt
 from pipeline.errors import PipelineError
-from pipeline.execute import local_cluster, map_tasks
+from pipeline.atomic import remove_stale_temporaries
+from pipeline.execute import cluster, map_tasks
 from pipeline.scan import Piece, Scan
 from pipeline.tasks import TileJob, bucket_piece, simplify_tile
+from pipeline.workdir import WorkDir
 from pipeline.writers import OUTPUT_SUFFIXES, OutputMeta, TilePart, write_output
 from tiling.budgets import target_count, tile_budgets
 from tiling.bucket import row_ranges
@@ -38,6 +39,7 @@ class RunReport:
     input_points: int
     output_points: int
     tiles: int
+    resumed_tiles: int
     seconds: float
     phases: dict[str, float]
 
@@ -66,37 +68,50 @@ def check_output(output: Path, overwrite: bool) -> None:
 
 
 def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: RunConfig, overwrite: bool = False,
-             scratch: str | Path | None = None, show_progress: bool = True) -> RunReport:
-    """Simplify one scan (one or more files) to `output`; the Python twin of `pipeline run`."""
+             scratch: str | Path | None = None, show_progress: bool = True, scheduler: str | None = None,
+             client: Client | None = None) -> RunReport:
+    """Simplify one scan (one or more files) to `output`; the Python twin of `pipeline run`.
+
+    Runs on `client` if given, else on the cluster at `scheduler`, else on a fresh local cluster.
+    Finished pieces and tiles are kept in a work folder until the output is in place, so the same
+    command re-run after a crash or a kill resumes; any other failure names that folder.
+    """
     clock = PhaseClock()
     config = config.validated()
     scan = Scan(inputs)
     output = Path(output) if output is not None else default_output(scan.paths[0])
     check_output(output, overwrite)
-    scratch_dir = Path(tempfile.mkdtemp(prefix=f".{output.name}.scratch-", dir=scratch or output.parent))
+    remove_stale_temporaries(output)
+    work = WorkDir.for_run(output, Path(scratch) if scratch else None, scan.paths, config)
     try:
-        with local_cluster(config.workers, config.memory_limit) as client:
-            written, tiles = simplify_scan(scan, output, config, scratch_dir, client, clock, show_progress)
-    finally:
-        shutil.rmtree(scratch_dir, ignore_errors=True)
-    return RunReport(output, scan.point_count, written, tiles, clock.total, clock.laps)
+        with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler) as active:
+            written, tiles, resumed = simplify_scan(scan, output, config, work, active, clock, show_progress)
+    except PipelineError as exc:
+        if not work.has_results():
+            work.remove()
+            raise
+        raise PipelineError(f"{exc} (finished work kept in {work.path}: re-run the same command to resume)") from exc
+    work.remove()
+    return RunReport(output, scan.point_count, written, tiles, resumed, clock.total, clock.laps)
 
 
-def simplify_scan(scan: Scan, output: Path, config: RunConfig, scratch_dir: Path, client: Client, clock: "PhaseClock",
-                  show_progress: bool) -> tuple[int, int]:
-    """Bucket, plan, simplify every tile on the cluster, stitch and write; return points written and tiles."""
+def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, client: Client, clock: "PhaseClock",
+                  show_progress: bool) -> tuple[int, int, int]:
+    """Bucket, plan, simplify every tile on the cluster, stitch and write; return points written, tiles
+    and tiles found finished by an earlier attempt."""
     clock.lap("start cluster")
-    store = TileStore.create(scratch_dir / "tiles.zarr", scan.dtype,
-                             {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
-    plan, slices = bucket_scan(client, scan, scan.pieces(config.chunk_points), store, config, show_progress)
+    store = TileStore.open(work.store_path) if (work.store_path / "zarr.json").is_file() else TileStore.create(
+        work.store_path, scan.dtype, {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
+    plan, slices = bucket_scan(client, scan, scan.pieces(config.chunk_points), work, config, show_progress)
     clock.lap("read and bucket")
     counts = np.array([t.count for t in plan.tiles], dtype=np.int64)
     target = target_count(config.ratio, int(counts.sum()))
     if target == 0:
         raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {counts.sum()} points")
     budgets = tile_budgets(counts, config.ratio)
-    jobs = make_jobs(store, scratch_dir, plan, slices, budgets, config)
-    map_tasks(client, simplify_tile, jobs, plan, desc="simplify", show_progress=show_progress,
+    jobs = make_jobs(work, plan, slices, budgets, config)
+    pending = [job for job in jobs if not Path(job.result_path).is_file()]
+    map_tasks(client, simplify_tile, pending, plan, desc="simplify", show_progress=show_progress,
               weight=lambda outcome: outcome.points)
     clock.lap("simplify tiles")
     parts = stitched_parts(store, plan, {job.tile_id: job for job in jobs}, budgets, config.seam_tolerance, scan)
@@ -104,7 +119,7 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, scratch_dir: Path
                       version("lidar-simplify"))
     written = write_output(output, scan.header, target, parts, meta)
     clock.lap("stitch and write")
-    return written, len(jobs)
+    return written, len(jobs), len(jobs) - len(pending)
 
 
 class PhaseClock:
@@ -126,14 +141,18 @@ class PhaseClock:
         self._last = now
 
 
-def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], store: TileStore, config: RunConfig,
+def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], work: WorkDir, config: RunConfig,
                 show_progress: bool) -> tuple[TilePlan, list[list[Slice]]]:
-    """The one streamed pass: pieces stored sorted by grid cell; then the plan from the summed
-    density, and each tile's core+halo as row slices of the pieces."""
+    """The one streamed pass: pieces stored sorted by grid cell (those an earlier attempt finished are
+    reused); then the plan from the summed density, and each tile's core+halo as row slices of the pieces."""
     mins, maxs = scan.bounds
     grid = DensityGrid.covering(mins, maxs, config.tile_size)
-    buckets = map_tasks(client, bucket_piece, pieces, scan, grid, str(store.path), desc="read and bucket",
-                        show_progress=show_progress, weight=lambda result: int(result[1][-1]))
+    finished = {piece.number: work.finished_piece(piece.number) for piece in pieces}
+    pending = [piece for piece in pieces if finished[piece.number] is None]
+    fresh = map_tasks(client, bucket_piece, pending, scan, grid, str(work.path), desc="read and bucket",
+                      show_progress=show_progress, weight=lambda result: int(result[1][-1]))
+    finished.update({piece.number: result for piece, result in zip(pending, fresh)})
+    buckets = [finished[piece.number] for piece in pieces]
     counts = np.zeros(grid.shape[0] * grid.shape[1], dtype=np.int64)
     for cells, starts in buckets:
         counts[cells] += np.diff(starts)
@@ -146,7 +165,7 @@ def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], store: TileStor
     return plan, slices
 
 
-def make_jobs(store: TileStore, scratch_dir: Path, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray,
+def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray,
               config: RunConfig) -> list[TileJob]:
     """One job per tile with a non-zero budget, in tile order: neighbours share pieces, so caches stay warm."""
     jobs = []
@@ -155,7 +174,7 @@ def make_jobs(store: TileStore, scratch_dir: Path, plan: TilePlan, slices: list[
         if budget == 0:
             continue
         reserve = min(tile.count - budget, max(RESERVE_MIN, int(np.ceil(RESERVE_SHARE * budget))))
-        jobs.append(TileJob(str(store.path), str(scratch_dir / f"tile-{tile_id}.npz"), tile_id, tuple(slices[tile_id]),
+        jobs.append(TileJob(str(work.store_path), str(work.tile_path(tile_id)), tile_id, tuple(slices[tile_id]),
                             config.overlap, piece_cache_bytes(config), budget, reserve, config.method, config.seed))
     return jobs
 

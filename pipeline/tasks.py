@@ -5,7 +5,6 @@ local or remote cluster can run it, in any order, with the same result.
 """
 from __future__ import annotations
 
-import os
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,6 +13,7 @@ import numpy as np
 
 from model import Tile, get_simplifier
 from pipeline.scan import Piece, Scan, scaled_xyz
+from pipeline.workdir import WorkDir, save_npz, write_atomically
 from tiling.bucket import bucket_by_cell
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, TileStore
@@ -45,11 +45,14 @@ class TileOutcome:
     seconds: float
 
 
-def bucket_piece(piece: Piece, scan: Scan, grid: DensityGrid, store_path: str) -> tuple[np.ndarray, np.ndarray]:
-    """Read one piece once, store its rows sorted by grid cell; return its occupied cells and row starts."""
+def bucket_piece(piece: Piece, scan: Scan, grid: DensityGrid, work_path: str) -> tuple[np.ndarray, np.ndarray]:
+    """Read one piece once, store its rows sorted by grid cell, record it as done in the work folder;
+    return its occupied cells and row starts."""
     chunk = scan.read(piece)
     buckets = bucket_by_cell(chunk.records, chunk.xyz, piece.first, grid)
-    TileStore.open(Path(store_path)).write_piece(piece.number, buckets.rows)
+    work = WorkDir(Path(work_path))
+    TileStore.open(work.store_path).write_piece(piece.number, buckets.rows)
+    work.save_piece(piece.number, buckets.cells, buckets.starts)
     return buckets.cells, buckets.starts
 
 
@@ -74,7 +77,6 @@ def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     centre = xyz[core].mean(axis=0)
     tile = Tile(xyz - centre, core, centre, tile_seed(job.seed, job.tile_id))
     selection = get_simplifier(job.method)(tile, min(job.budget + job.reserve, tile.core_count))
-    temporary = f"{job.result_path}.tmp-{os.getpid()}.npz"
-    np.savez(temporary, rows=seen[selection.indices], xyz=selection.xyz + centre)
-    os.replace(temporary, job.result_path)
+    write_atomically(Path(job.result_path),
+                     lambda tmp: save_npz(tmp, rows=seen[selection.indices], xyz=selection.xyz + centre))
     return TileOutcome(job.tile_id, len(xyz), len(selection.indices), time.perf_counter() - started)

@@ -1,0 +1,93 @@
+"""A real dask.distributed cluster (a `dask scheduler` and two `dask worker` processes on 127.0.0.1),
+and determinism: the same output for 1, 2 and 4 local workers and for the cluster."""
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+from pathlib import Path
+from typing import Iterator
+
+import laspy
+import numpy as np
+import pytest
+from dask.distributed import Client
+
+import pipeline
+from pipeline.simulate import write_street_scan
+
+REPO = Path(__file__).resolve().parents[1]
+SETTINGS = dict(ratio=0.1, method="learned", tile_size=8.0, seed=3)
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def scheduler() -> Iterator[str]:
+    """tcp:// address of a scheduler with two single-threaded workers, all separate processes."""
+    address = f"tcp://127.0.0.1:{free_port()}"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    processes = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                                   "--port", address.rsplit(":", 1)[1], "--no-dashboard"],
+                                  env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    processes += [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
+                                    "--no-dashboard", "--memory-limit", "2GB"],
+                                   env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for _ in range(2)]
+    try:
+        with Client(address, timeout="60s") as client:
+            client.wait_for_workers(2, timeout=120)
+        yield address
+    finally:
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            process.wait(timeout=60)
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("cluster") / "street.laz"
+    write_street_scan(path, n_points=60_000, seed=4)
+    return path
+
+
+@pytest.fixture(scope="module")
+def local_output(scan: Path, tmp_path_factory: pytest.TempPathFactory) -> np.ndarray:
+    out = tmp_path_factory.mktemp("local") / "local.laz"
+    pipeline.run(scan, out, workers=2, **SETTINGS)
+    return laspy.read(out).points.array
+
+
+@pytest.mark.parametrize("workers", [1, 4])
+def test_worker_count_does_not_change_the_output(scan, local_output, tmp_path, workers):
+    pipeline.run(scan, tmp_path / "out.laz", workers=workers, **SETTINGS)
+    np.testing.assert_array_equal(laspy.read(tmp_path / "out.laz").points.array, local_output)
+
+
+def test_a_real_cluster_gives_the_local_output(scan, local_output, scheduler, tmp_path):
+    report = pipeline.run(scan, tmp_path / "out.laz", scheduler=scheduler, **SETTINGS)
+    assert report.output_points == len(local_output)
+    np.testing.assert_array_equal(laspy.read(tmp_path / "out.laz").points.array, local_output)
+
+
+def test_cli_runs_on_the_cluster(scan, local_output, scheduler, tmp_path):
+    out = tmp_path / "cli.laz"
+    result = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(scan), "-o", str(out), "--ratio", "0.1",
+                             "--method", "learned", "--tile-size", "8", "--seed", "3", "--scheduler", scheduler],
+                            capture_output=True, text=True, cwd=REPO)
+    assert result.returncode == 0, result.stderr
+    np.testing.assert_array_equal(laspy.read(out).points.array, local_output)
+
+
+def test_an_unreachable_scheduler_is_one_line(scan, tmp_path):
+    result = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(scan), "-o", str(tmp_path / "x.laz"),
+                             "--ratio", "0.1", "--scheduler", f"tcp://127.0.0.1:{free_port()}"],
+                            capture_output=True, text=True, cwd=REPO)
+    assert result.returncode == 2
+    assert result.stderr.startswith("pipeline: error: tcp://127.0.0.1:") and len(result.stderr.splitlines()) == 1
+    assert not (tmp_path / "x.laz").exists()

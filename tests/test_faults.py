@@ -1,0 +1,76 @@
+"""Real faults on real processes: a Dask worker killed mid-run, the whole job SIGKILLed and re-run."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import laspy
+import numpy as np
+import psutil
+import pytest
+
+from pipeline.simulate import write_street_scan
+
+SETTINGS = ["--ratio", "0.1", "--method", "learned", "--tile-size", "8", "--workers", "2", "--seed", "5"]
+
+
+@pytest.fixture(scope="module")
+def scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("faults") / "street.laz"
+    write_street_scan(path, n_points=120_000, seed=9)
+    return path
+
+
+@pytest.fixture(scope="module")
+def clean_output(scan: Path, tmp_path_factory: pytest.TempPathFactory) -> np.ndarray:
+    out = tmp_path_factory.mktemp("clean") / "clean.laz"
+    subprocess.run(command(scan, out), check=True, capture_output=True)
+    return laspy.read(out).points.array
+
+
+def command(scan: Path, out: Path) -> list[str]:
+    return [sys.executable, "-m", "pipeline.cli", "run", str(scan), "-o", str(out), *SETTINGS]
+
+
+def finished_tiles(out: Path) -> int:
+    return sum(1 for _ in out.parent.glob(f".{out.name}.work-*/tile-*.npz"))
+
+
+def wait_for_tiles(job: subprocess.Popen, out: Path, count: int) -> None:
+    """Block until `count` tiles are finished; fail if the job ends first (then no fault was injected)."""
+    while finished_tiles(out) < count:
+        assert job.poll() is None, "the run ended before the fault could be injected"
+        time.sleep(0.05)
+
+
+def test_a_killed_worker_does_not_change_the_output(scan, clean_output, tmp_path):
+    out = tmp_path / "out.laz"
+    job = subprocess.Popen(command(scan, out), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    wait_for_tiles(job, out, 2)
+    workers = [p for p in psutil.Process(job.pid).children(recursive=True)
+               if "spawn_main" in " ".join(p.cmdline()) and "resource_tracker" not in " ".join(p.cmdline())]
+    assert len(workers) == 2
+    workers[0].kill()
+    _, stderr = job.communicate(timeout=300)
+    assert job.returncode == 0, stderr
+    np.testing.assert_array_equal(laspy.read(out).points.array, clean_output)
+
+
+def test_a_sigkilled_run_resumes_from_its_finished_tiles(scan, clean_output, tmp_path):
+    out = tmp_path / "out.laz"
+    job = subprocess.Popen(command(scan, out), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                           start_new_session=True)
+    wait_for_tiles(job, out, 3)
+    os.killpg(job.pid, signal.SIGKILL)
+    job.wait()
+    assert not out.exists()  # nothing under the final name
+    done = finished_tiles(out)
+    rerun = subprocess.run(command(scan, out), capture_output=True, text=True)
+    assert rerun.returncode == 0, rerun.stderr
+    assert done >= 3 and f"{done} finished earlier" in rerun.stdout
+    np.testing.assert_array_equal(laspy.read(out).points.array, clean_output)
+    assert not list(tmp_path.glob(".out.laz.*"))  # the work folder and any temporaries are gone
