@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import sys
+from datetime import datetime, timezone
 from pathlib import Path
 
 import click
@@ -63,26 +64,102 @@ def cli() -> None:
 @click.option("--overwrite", is_flag=True, help="Replace an existing output.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 @click.option("--verbose", "-v", is_flag=True, help="Also print the time of each phase.")
+@click.option("--log-json", is_flag=True, help="Print the outcome as one JSON line on stdout (also on failure).")
 def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, method: str | None,
                 tile_size: float | None, overlap: float | None, max_tile_points: int | None,
                 seam_tolerance: float | None, workers: int | None, memory_limit: str | None, config: str | None,
                 seed: int | None, scratch: Path | None, scheduler: str | None, overwrite: bool, quiet: bool,
-                verbose: bool) -> None:
+                verbose: bool, log_json: bool) -> None:
     """Simplify INPUTS (LAS/LAZ/COPC/PLY files that together form one scan) to one output."""
     from pipeline.runner import run_scan
 
-    settings = build_config(config, ratio=ratio, method=method, tile_size=tile_size, overlap=overlap,
-                            max_tile_points=max_tile_points, seam_tolerance=seam_tolerance, workers=workers,
-                            memory_limit=memory_limit, seed=seed)
-    report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch,
-                      show_progress=not quiet and sys.stderr.isatty(), scheduler=scheduler)
-    if not quiet:
+    try:
+        settings = build_config(config, ratio=ratio, method=method, tile_size=tile_size, overlap=overlap,
+                                max_tile_points=max_tile_points, seam_tolerance=seam_tolerance, workers=workers,
+                                memory_limit=memory_limit, seed=seed)
+        report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch,
+                          show_progress=not quiet and not log_json and sys.stderr.isatty(), scheduler=scheduler)
+    except PipelineError as exc:
+        if log_json:
+            log_json_line({"event": "failed", "input": [str(p) for p in inputs], "error": str(exc)})
+        raise
+    if log_json:
+        log_json_line({"event": "done", "input": [str(p) for p in inputs], "output": str(report.output),
+                       "input_points": report.input_points, "output_points": report.output_points,
+                       "tiles": report.tiles, "resumed_tiles": report.resumed_tiles,
+                       "seconds": round(report.seconds, 3), "phases": report.phases})
+    elif not quiet:
         rate = report.input_points / max(report.seconds, 1e-9)
         resumed = f", {report.resumed_tiles} finished earlier" if report.resumed_tiles else ""
         click.echo(f"{report.output}: {report.output_points:,} of {report.input_points:,} points "
                    f"({report.tiles} tiles{resumed}, {report.seconds:.1f} s, {rate:,.0f} points/s)")
     if verbose:
         click.echo("  ".join(f"{phase}: {seconds:.2f} s" for phase, seconds in report.phases.items()))
+
+
+@cli.command("batch")
+@click.argument("jobs", type=click.Path(path_type=Path))
+@click.option("--out-dir", type=click.Path(path_type=Path), default=None,
+              help="Output folder (required for a folder of scans; overrides out_dir of a job file).")
+@click.option("--ratio", "-r", type=float, default=None, help="Fraction kept, for every job (overrides the file).")
+@click.option("--method", "-m", type=click.Choice(METHODS), default=None, help="Simplifier for every job.")
+@click.option("--config", "-c", "config", default=None, help="Preset or TOML file for every job.")
+@click.option("--workers", "-w", type=int, default=None, help="Dask worker processes. [default: 2]")
+@click.option("--memory-limit", default=None, help="Memory limit per worker, e.g. 2GB. [default: 2GB]")
+@click.option("--scheduler", default=None, metavar="tcp://HOST:PORT", help="Run on this existing Dask cluster.")
+@click.option("--scratch", type=click.Path(path_type=Path), default=None, help="Folder for temporary tiles.")
+@click.option("--manifest", type=click.Path(path_type=Path), default=None,
+              help="Batch manifest. [default: <out-dir>/batch-manifest.json, or <JOBS>.manifest.json]")
+@click.option("--overwrite", is_flag=True, help="Replace existing outputs the batch did not write itself.")
+@click.option("--log-json", is_flag=True, help="One JSON object per line on stdout, for cron and log collectors.")
+def batch_command(jobs: Path, out_dir: Path | None, ratio: float | None, method: str | None, config: str | None,
+                  workers: int | None, memory_limit: str | None, scheduler: str | None, scratch: Path | None,
+                  manifest: Path | None, overwrite: bool, log_json: bool) -> None:
+    """Run many scans: JOBS is a folder (each LAS/LAZ/PLY file is one scan) or a TOML job list.
+
+    Finished jobs are skipped on a rerun; a failed job is recorded and the rest go on; the exit code
+    is 1 if any job failed.
+    """
+    from pipeline.batch import Manifest, jobs_from_folder, jobs_from_toml, run_batch
+
+    flags = {name: value for name, value in dict(ratio=ratio, method=method, config=config, workers=workers,
+                                                  memory_limit=memory_limit).items() if value is not None}
+    if jobs.is_dir():
+        if out_dir is None:
+            raise PipelineError(f"{jobs}: a folder of scans needs --out-dir")
+        if ratio is None:
+            raise PipelineError(f"{jobs}: a folder of scans needs --ratio")
+        job_list = jobs_from_folder(jobs, out_dir, flags)
+    elif jobs.is_file():
+        job_list = jobs_from_toml(jobs, out_dir, flags)
+    else:
+        raise PipelineError(f"{jobs}: no such job file or folder")
+    default_manifest = out_dir / "batch-manifest.json" if out_dir else jobs.with_suffix(".manifest.json")
+    log = log_json_line if log_json else log_human_line
+    summary = run_batch(job_list, Manifest(manifest or default_manifest), log, overwrite, scheduler, scratch)
+    log({"event": "batch", "done": summary.done, "skipped": summary.skipped, "failed": len(summary.failed)})
+    if summary.failed:
+        sys.exit(1)
+
+
+def log_json_line(event: dict) -> None:
+    """One event as a JSON line with a UTC timestamp."""
+    stamp = datetime.now(timezone.utc).isoformat(timespec="milliseconds")
+    click.echo(json.dumps({"time": stamp, **event}))
+
+
+def log_human_line(event: dict) -> None:
+    """One batch event as a short line for a person."""
+    kind = event["event"]
+    if kind == "batch":
+        click.echo(f"batch: {event['done']} done, {event['skipped']} already done, {event['failed']} failed")
+    elif kind == "done":
+        click.echo(f"done {event['output']}: {event['output_points']:,} of {event['input_points']:,} points "
+                   f"({event['seconds']:.1f} s)")
+    elif kind == "failed":
+        click.echo(f"failed {event['output']}: {event['error']}", err=True)
+    elif kind == "skipped":
+        click.echo(f"skipped {event['output']}: already done")
 
 
 @cli.command("info")

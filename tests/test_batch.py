@@ -1,0 +1,87 @@
+"""`pipeline batch` (a folder or a TOML job list, one manifest, reruns skip finished work) and --log-json."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import laspy
+import pytest
+
+from tests.test_cli import assert_one_line_error, cli, small_las
+
+
+@pytest.fixture()
+def scans(tmp_path: Path) -> Path:
+    folder = tmp_path / "scans"
+    folder.mkdir()
+    small_las(folder / "a.las", 3_000)
+    small_las(folder / "b.las", 2_000)
+    (folder / "broken.laz").write_bytes(b"not a laz file at all")
+    return folder
+
+
+def events(stdout: str) -> list[dict]:
+    return [json.loads(line) for line in stdout.splitlines()]
+
+
+def test_folder_batch_records_each_scan_and_reruns_only_what_failed(scans, tmp_path):
+    out = tmp_path / "out"
+    first = cli("batch", str(scans), "--out-dir", str(out), "--ratio", "0.1", "--method", "random", "-w", "1",
+                "--log-json")
+    assert first.returncode == 1  # one scan failed
+    log = events(first.stdout)
+    assert [e["event"] for e in log if e["event"] in ("done", "failed")] == ["done", "done", "failed"]
+    assert all("time" in e for e in log) and log[-1] == {**log[-1], "event": "batch", "done": 2, "failed": 1}
+    manifest = json.loads((out / "batch-manifest.json").read_text())
+    assert manifest[str(out / "a.simplified.las")]["status"] == "done"
+    assert manifest[str(out / "a.simplified.las")]["output_points"] == 300
+    assert "broken.laz" in manifest[str(out / "broken.simplified.laz")]["error"]
+    assert len(laspy.read(out / "b.simplified.las").points) == 200
+    assert not (out / "broken.simplified.laz").exists()
+
+    (scans / "broken.laz").unlink()
+    small_las(scans / "broken.laz", 1_000)  # fixed, as LAS bytes under the same name
+    second = cli("batch", str(scans), "--out-dir", str(out), "--ratio", "0.1", "--method", "random", "-w", "1",
+                 "--log-json")
+    assert second.returncode == 0, second.stderr
+    assert [e["event"] for e in events(second.stdout)] == ["skipped", "skipped", "started", "done", "batch"]
+
+
+def test_toml_job_list_with_defaults_and_per_job_settings(scans, tmp_path):
+    jobs = tmp_path / "jobs.toml"
+    jobs.write_text(f'[defaults]\nratio = 0.1\nmethod = "fps"\nworkers = 1\nout_dir = "small"\n'
+                    f'[[job]]\ninput = "{scans}/a.las"\n'
+                    f'[[job]]\ninput = ["{scans}/a.las", "{scans}/b.las"]\noutput = "merged.laz"\nratio = 0.5\n')
+    result = cli("batch", str(jobs))
+    assert result.returncode == 0, result.stderr
+    assert len(laspy.read(tmp_path / "small" / "a.simplified.las").points) == 300
+    assert len(laspy.read(tmp_path / "merged.laz").points) == 2_500
+    assert json.loads((tmp_path / "jobs.manifest.json").read_text())[str(tmp_path / "merged.laz")]["status"] == "done"
+    assert "batch: 2 done, 0 already done, 0 failed" in result.stdout
+
+
+@pytest.mark.parametrize("content, words", [
+    ("[defaults]\nratio = 0.1\n", ("no [[job]] entries",)),
+    ('[[job]]\noutput = "x.laz"\n', ("job 1 has no input",)),
+    ("[[job]\n", ("not a readable TOML job list",)),
+])
+def test_bad_job_lists_are_one_line(tmp_path, content, words):
+    jobs = tmp_path / "jobs.toml"
+    jobs.write_text(content)
+    assert_one_line_error(cli("batch", str(jobs)), str(jobs), *words)
+
+
+def test_a_folder_needs_an_output_folder(scans):
+    assert_one_line_error(cli("batch", str(scans), "--ratio", "0.1"), "--out-dir")
+
+
+def test_run_log_json_reports_success_and_failure(scans, tmp_path):
+    ok = cli("run", str(scans / "a.las"), "--ratio", "0.1", "-o", str(tmp_path / "a.laz"), "-m", "random", "-w", "1",
+             "--log-json")
+    assert ok.returncode == 0, ok.stderr
+    (done,) = events(ok.stdout)
+    assert done["event"] == "done" and done["output_points"] == 300 and done["input_points"] == 3_000
+    bad = cli("run", str(scans / "a.las"), "--ratio", "2", "-o", str(tmp_path / "b.laz"), "--log-json")
+    assert bad.returncode == 2
+    (failed,) = events(bad.stdout)
+    assert failed["event"] == "failed" and "--ratio" in failed["error"]
