@@ -26,7 +26,8 @@ def local_cluster(workers: int, memory_limit: str) -> Iterator[Client]:
     imports, gained nothing measurable on 2 cores, so it starts here, in line.
     """
     quiet_dask_logs()
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": ONE_THREAD}):
+    environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **ONE_THREAD}  # keeps MALLOC_TRIM_THRESHOLD_
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
         with LocalCluster(n_workers=workers, threads_per_worker=1, memory_limit=memory_limit, processes=True,
                           dashboard_address=None, preload=[WORKER_PRELOAD]) as cluster, Client(cluster) as client:
             client.register_plugin(QuietWorkerLogs())

@@ -1,0 +1,109 @@
+"""Scaling of `pipeline run` with scan size and workers: wall time, points/s and peak RSS of the tree.
+
+    python bench/scale.py [--sizes 1M,4M,16M,30M] [--methods learned,fps] [--workers 2] [--ratio 0.1]
+                          [--one-worker-size 4M] [--data DIR]
+
+Makes synthetic street scans with the project's simulator (streamed to LAZ in 500k-point chunks,
+never whole in memory; kept in --data between runs), runs each method on each, then the one-worker
+run at --one-worker-size for the speed-up. Prints a Markdown table and the three checks:
+peak RSS flat (largest within 1.2x of smallest), per-point cost within 1.2x from the smallest to 16M,
+and 2 workers >= 1.7x one worker.
+"""
+from __future__ import annotations
+
+import argparse
+import re
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from proctree import Measured, measure
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+from pipeline.simulate import write_street_scan  # noqa: E402
+
+SUMMARY = re.compile(r"of ([\d,]+) points \((\d+) tiles, ([\d.]+) s")
+
+
+def parse_count(text: str) -> int:
+    """'4M' -> 4_000_000, '500k' -> 500_000, '1234' -> 1234."""
+    units = {"k": 10**3, "m": 10**6}
+    text = text.strip().lower()
+    return int(float(text[:-1]) * units[text[-1]]) if text[-1] in units else int(text)
+
+
+def scan_of(size: int, data: Path) -> Path:
+    """The simulated scan of `size` points, made once."""
+    path = data / f"street_{size}.laz"
+    if not path.exists():
+        started = time.perf_counter()
+        write_street_scan(path, n_points=size, seed=0)
+        print(f"simulated {size:,} points in {time.perf_counter() - started:.1f} s -> {path}", flush=True)
+    return path
+
+
+def run(scan: Path, method: str, workers: int, ratio: float, out_dir: Path) -> Measured:
+    """One `pipeline run` of the scan, measured over its process tree."""
+    command = [sys.executable, "-m", "pipeline.cli", "run", str(scan), "--ratio", str(ratio), "-o",
+               str(out_dir / f"{scan.stem}-{method}-{workers}.laz"), "--method", method, "--workers", str(workers),
+               "--overwrite"]
+    result = measure(command)
+    if result.returncode != 0:
+        sys.exit(f"failed: {' '.join(command)}\n{result.stderr}")
+    return result
+
+
+def row(size: int, method: str, workers: int, result: Measured) -> str:
+    own = float(SUMMARY.search(result.stdout).group(3))
+    return (f"| {method} | {workers} | {size:,} | {result.seconds:.1f} | {size / result.seconds:,.0f} "
+            f"| {1e6 * result.seconds / size:.2f} | {own:.1f} | {result.peak_rss_bytes / 2**20:,.0f} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", default="1M,4M,16M,30M")
+    parser.add_argument("--methods", default="learned,fps")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--ratio", type=float, default=0.1)
+    parser.add_argument("--one-worker-size", default="4M", help="size of the one-worker run for the speed-up")
+    parser.add_argument("--data", type=Path, default=Path(tempfile.gettempdir()) / "lidar-simplify-scale")
+    args = parser.parse_args()
+    sizes = [parse_count(s) for s in args.sizes.split(",")]
+    args.data.mkdir(parents=True, exist_ok=True)
+    results: dict[tuple[str, int, int], Measured] = {}
+    lines = []
+    with tempfile.TemporaryDirectory(dir=args.data) as out_dir:
+        for size in sizes:
+            scan = scan_of(size, args.data)
+            for method in args.methods.split(","):
+                results[method, args.workers, size] = run(scan, method, args.workers, args.ratio, Path(out_dir))
+                lines.append(row(size, method, args.workers, results[method, args.workers, size]))
+                print(lines[-1], flush=True)
+        one_size = parse_count(args.one_worker_size)
+        for method in args.methods.split(","):
+            results[method, 1, one_size] = run(scan_of(one_size, args.data), method, 1, args.ratio, Path(out_dir))
+            lines.append(row(one_size, method, 1, results[method, 1, one_size]))
+            print(lines[-1], flush=True)
+    print(f"\nratio {args.ratio}; wall = the whole command; us/pt = wall microseconds per input point; "
+          f"own = the pipeline's own seconds; RSS = peak summed over the process tree")
+    print("| method | workers | points | wall s | points/s | us/pt | own s | peak RSS MiB |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
+    print("\n".join(lines))
+    print()
+    for method in args.methods.split(","):
+        small, large = sizes[0], sizes[-1]
+        mid = max((s for s in sizes if s <= 16_000_000), default=large)
+        rss = results[method, args.workers, large].peak_rss_bytes / results[method, args.workers, small].peak_rss_bytes
+        cost = (results[method, args.workers, mid].seconds / mid) / (results[method, args.workers, small].seconds / small)
+        speedup = results[method, 1, one_size].seconds / results[method, args.workers, one_size].seconds \
+            if (method, args.workers, one_size) in results else float("nan")
+        print(f"{method}: peak RSS {large:,} / {small:,} = {rss:.2f} (target <= 1.2); per-point cost "
+              f"{mid:,} / {small:,} = {cost:.2f} (target <= 1.2); {args.workers} workers / 1 worker at "
+              f"{one_size:,} = {speedup:.2f}x (target >= 1.7)")
+
+
+if __name__ == "__main__":
+    main()
