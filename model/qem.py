@@ -4,8 +4,11 @@ fast-simplification decimates to a triangle count, not a vertex count, so the ve
 is only near the target. Each edge collapse removes exactly one vertex and the library records them in
 order, so the run is made to overshoot (fewer vertices than the target), then only its first
 V - target collapses are replayed: the same greedy QEM run stopped at exactly the target count, with
-every merged vertex at its quadric-optimal position. If the decimator cannot get down to the target
-(no valid collapse left), the vertices it reached are returned: more than the target, never fewer.
+every merged vertex at its quadric-optimal position. Should a replay's clean-up also merge vertices
+its collapses left on no triangle, the prefix is shortened by the shortfall and replayed again (up to
+4 times). If the decimator cannot get down to the target (no valid collapse left), the vertices it
+reached are returned, more than the target. On the icosphere, cube, TOSCA and other/ meshes tried, the
+count was exact at ratios 0.5 to 0.01.
 """
 from __future__ import annotations
 
@@ -20,7 +23,8 @@ REPLAY_TRIES = 4  # replays of a shorter prefix if the replay's clean-up merged 
 def qem_vertices(vertices: np.ndarray, faces: np.ndarray, ratio: float) -> np.ndarray:
     """(round(ratio * V), 3) vertex positions of the QEM-simplified mesh (see the module note on the count).
 
-    Vertices that no face references are not on the surface and are dropped first.
+    Vertices that no face references are not on the surface and are dropped first (all the surface is
+    returned if it has no more than the target).
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces, dtype=np.int64)
