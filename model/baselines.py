@@ -5,7 +5,7 @@ import fpsample
 import numpy as np
 
 from model.geometry import curvature, knn, local_frames
-from model.selection import Selection, Tile
+from model.selection import Selection, Tile, kept_count
 
 FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core
 VOXEL_COUNT_SLACK = 0.02  # the searched cell may give up to 2 % more voxels than the budget; the rest are trimmed
@@ -16,6 +16,16 @@ def random_simplify(tile: Tile, budget: int) -> Selection:
     core = np.flatnonzero(tile.core)
     order = np.random.default_rng(tile.seed).permutation(core)
     return Selection.of(tile, order[:budget])
+
+
+def uniform_vertices(vertices: np.ndarray, ratio: float, seed: int = 0) -> np.ndarray:
+    """The paper's uniform mesh baseline: round(ratio * V) of the vertices, a seeded random subset.
+
+    It is random_simplify on one tile holding every vertex, so a mesh and a tile sample alike.
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    tile = Tile(vertices, np.ones(len(vertices), dtype=bool), np.zeros(3), seed)
+    return random_simplify(tile, kept_count(ratio, len(vertices))).xyz
 
 
 def fps_simplify(tile: Tile, budget: int) -> Selection:

@@ -41,10 +41,13 @@ def reduced_latent_order(features: np.ndarray, core: np.ndarray, budget: int, se
 
 
 @torch.no_grad()
-def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS, exact: bool = False) -> Selection:
+def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS, exact: bool = False,
+                     graph: np.ndarray | None = None) -> Selection:
     """Latent FPS over core+halo until `budget` core picks, then each pick refined over its neighbourhood.
 
     The input is normalised exactly as in training (centre, unit ball); refined positions are mapped back.
+    `graph` ((n, k) rows, each point first; mesh mode passes mesh adjacency) replaces the kNN graph in the
+    GNN layer only: refinement always attends over each pick's nearest input points, as in the paper.
     """
     budget = min(budget, tile.core_count)
     if budget == 0:
@@ -54,7 +57,8 @@ def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS, exact: bo
     normalised, centre, scale = normalise(xyz64)
     xyz = normalised.float()
     neighbours = knn_graph(xyz.numpy())
-    features = model.projector(xyz, mean_operator(neighbours, len(xyz)))
+    adjacency = neighbours if graph is None else torch.from_numpy(np.ascontiguousarray(graph, dtype=np.int64))
+    features = model.projector(xyz, mean_operator(adjacency, len(xyz)))
     if exact:
         core = torch.from_numpy(tile.core)
         core_index = np.flatnonzero(tile.core)

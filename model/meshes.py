@@ -1,4 +1,4 @@
-"""TOSCA-style training meshes: loading (.off, .off.gz, .obj, .ply) and the per-class pose split."""
+"""Meshes: loading (.off, .off.gz, .obj, .ply), the per-class pose split and the mesh graph."""
 from __future__ import annotations
 
 import gzip
@@ -7,6 +7,9 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy import sparse
+
+from model.geometry import knn
 
 MESH_SUFFIXES = (".off", ".off.gz", ".obj", ".ply")
 
@@ -25,11 +28,16 @@ def shape_class(name: str) -> str:
 
 
 def load_mesh(path: Path) -> trimesh.Trimesh:
-    """A triangle mesh as stored (no merging or re-ordering of vertices)."""
+    """A triangle mesh as stored (no merging or re-ordering of vertices).
+
+    maintain_order keeps an OBJ's `v` lines as its vertices: without it, faces that give per-corner
+    normals (`f 1//1 2//1 3//1`) become a triangle soup with one vertex per corner.
+    """
     if path.name.endswith(".gz"):
         with gzip.open(path) as stream:
-            return trimesh.load(stream, file_type=path.name[:-3].rsplit(".", 1)[-1], process=False)
-    return trimesh.load(path, process=False, force="mesh")
+            return trimesh.load(stream, file_type=path.name[:-3].rsplit(".", 1)[-1], process=False,
+                                maintain_order=True)
+    return trimesh.load(path, process=False, force="mesh", maintain_order=True)
 
 
 def list_meshes(folder: Path) -> list[Path]:
@@ -49,3 +57,37 @@ def stratified_split(names: list[str], test_share: float = 0.2, seed: int = 0) -
         test += [p for p in poses if p in chosen]
         train += [p for p in poses if p not in chosen]
     return train, test
+
+
+def mesh_graph(vertices: np.ndarray, faces: np.ndarray, width: int) -> np.ndarray:
+    """(V, width) neighbour rows over mesh adjacency, each vertex first: the graph the paper's GNN uses on meshes.
+
+    The network's mean operator needs rows of one width, so each row lists the vertex's 1-ring, then its
+    2-ring, each nearest first, cut at width - 1; rows still short (borders, unreferenced or tiny
+    meshes) are filled with the nearest other vertices by distance, as the kNN graph would have them.
+    """
+    n = len(vertices)
+    width = min(width, n)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]]).astype(np.int64)
+    ring = sparse.csr_matrix((np.ones(len(edges), dtype=np.float32), (edges[:, 0], edges[:, 1])), shape=(n, n))
+    ring = ((ring + ring.T) > 0).astype(np.float32)
+    fill = knn(vertices, width).indices
+    hops = [ring.nonzero(), (ring @ ring).nonzero(), (np.repeat(np.arange(n), width), fill.ravel())]
+    rows = np.concatenate([r for r, _ in hops])
+    cols = np.concatenate([c for _, c in hops])
+    hop = np.concatenate([np.full(len(r), level) for level, (r, _) in enumerate(hops)])
+    other = rows != cols
+    rows, cols, hop = rows[other], cols[other], hop[other]
+    order = np.lexsort((hop, cols, rows))  # one entry per (vertex, neighbour): its fewest hops
+    rows, cols, hop = rows[order], cols[order], hop[order]
+    first = np.r_[True, (rows[1:] != rows[:-1]) | (cols[1:] != cols[:-1])]
+    rows, cols, hop = rows[first], cols[first], hop[first]
+    distance = np.linalg.norm(vertices[rows] - vertices[cols], axis=1)
+    order = np.lexsort((distance, hop, rows))
+    rows, cols = rows[order], cols[order]
+    rank = np.arange(len(rows)) - np.searchsorted(rows, rows)  # position within the vertex's row
+    take = rank < width - 1
+    graph = np.empty((n, width), dtype=np.int64)
+    graph[:, 0] = np.arange(n)
+    graph[rows[take], 1 + rank[take]] = cols[take]
+    return graph

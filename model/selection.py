@@ -44,6 +44,12 @@ class Selection:
         return cls(indices, tile.xyz[indices])
 
 
+def kept_count(ratio: float, total: int) -> int:
+    """round(ratio * N), halves up, for whole clouds and meshes: tiling.budgets.target_count's rule
+    (model may not import tiling)."""
+    return min(total, int(np.floor(ratio * total + 0.5)))
+
+
 class Simplifier(Protocol):
     """Picks `budget` core points of a tile (fewer only if the tile has fewer core points)."""
 

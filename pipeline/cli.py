@@ -65,11 +65,13 @@ def cli() -> None:
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 @click.option("--verbose", "-v", is_flag=True, help="Also print the time of each phase.")
 @click.option("--log-json", is_flag=True, help="Print the outcome as one JSON line on stdout (also on failure).")
+@click.option("--mesh", is_flag=True, help="INPUT is a triangle mesh (.off/.obj/.ply): simplify its vertices and "
+              "re-triangulate them by ball pivoting; output .ply/.obj/.off.")
 def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, method: str | None,
                 tile_size: float | None, overlap: float | None, max_tile_points: int | None,
                 seam_tolerance: float | None, workers: int | None, memory_limit: str | None, config: str | None,
                 seed: int | None, scratch: Path | None, scheduler: str | None, overwrite: bool, quiet: bool,
-                verbose: bool, log_json: bool) -> None:
+                verbose: bool, log_json: bool, mesh: bool) -> None:
     """Simplify INPUTS (LAS/LAZ/COPC/PLY files that together form one scan) to one output."""
     from pipeline.runner import run_scan
 
@@ -77,6 +79,13 @@ def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, met
         settings = build_config(config, ratio=ratio, method=method, tile_size=tile_size, overlap=overlap,
                                 max_tile_points=max_tile_points, seam_tolerance=seam_tolerance, workers=workers,
                                 memory_limit=memory_limit, seed=seed)
+        if mesh:
+            from pipeline.mesh_mode import run_mesh
+
+            mesh_report = run_mesh(inputs, output, settings, overwrite=overwrite)
+            if not quiet:
+                click.echo(mesh_report.summary())
+            return
         report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch,
                           show_progress=not quiet and not log_json and sys.stderr.isatty(), scheduler=scheduler)
     except PipelineError as exc:

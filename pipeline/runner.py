@@ -55,10 +55,10 @@ def default_output(first_input: Path) -> Path:
     return Path.cwd() / f"{stem}.simplified{suffix}"
 
 
-def check_output(output: Path, overwrite: bool) -> None:
+def check_output(output: Path, overwrite: bool, suffixes: Sequence[str] = OUTPUT_SUFFIXES) -> None:
     """Refuse an unsupported suffix, an existing output without overwrite, or an unwritable folder."""
-    if output.suffix.lower() not in OUTPUT_SUFFIXES:
-        raise PipelineError(f"{output}: unsupported output type (use .las, .laz or .zarr)")
+    if output.suffix.lower() not in suffixes:
+        raise PipelineError(f"{output}: unsupported output type (use {', '.join(suffixes)})")
     if output.exists() and not overwrite:
         raise PipelineError(f"{output}: already exists (pass --overwrite to replace it)")
     if not output.parent.is_dir():

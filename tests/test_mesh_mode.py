@@ -1,0 +1,90 @@
+"""Mesh mode: `pipeline run MESH --mesh` keeps round(ratio * V) vertices and re-triangulates them."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+from click.testing import CliRunner
+
+from model.meshes import load_mesh
+from model.selection import kept_count
+from pipeline.cli import cli as pipeline_cli
+from pipeline.errors import PipelineError
+from pipeline.mesh_mode import _open3d, read_mesh
+from tests.test_cli import assert_one_line_error, cli
+
+
+@pytest.fixture(scope="module")
+def sphere_off(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A unit icosphere of 642 vertices as an OFF file."""
+    path = tmp_path_factory.mktemp("mesh") / "sphere.off"
+    trimesh.creation.icosphere(subdivisions=3).export(path)
+    return path
+
+
+@pytest.mark.parametrize("method", ["learned", "fps"])
+def test_mesh_mode_writes_every_kept_vertex_and_triangles(tmp_path, sphere_off, method):
+    out = tmp_path / f"{method}.ply"
+    result = CliRunner().invoke(pipeline_cli, ["run", str(sphere_off), "--ratio", "0.1", "--mesh", "-m", method,
+                                               "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    mesh = trimesh.load(out, process=False)
+    # every kept vertex is written, even one ball pivoting left without a triangle
+    assert len(mesh.vertices) == kept_count(0.1, 642) == 64
+    assert len(mesh.faces) > 0 and mesh.faces.max() < len(mesh.vertices)
+    assert np.abs(np.linalg.norm(mesh.vertices, axis=1) - 1).max() < 0.1  # refinement nudges, stays on the sphere
+    assert "64 of 642 vertices" in result.output
+    assert not list(tmp_path.glob(".*tmp*"))  # the temporary name was renamed away
+
+
+def test_fps_mesh_vertices_are_source_vertices(tmp_path, sphere_off):
+    out = tmp_path / "fps.obj"
+    assert CliRunner().invoke(pipeline_cli, ["run", str(sphere_off), "-r", "0.2", "--mesh", "-m", "fps",
+                                             "-o", str(out)]).exit_code == 0
+    kept = load_mesh(out).vertices
+    source = {tuple(v) for v in np.round(trimesh.load(sphere_off, process=False).vertices, 6)}
+    assert len(kept) == 128 and all(tuple(v) in source for v in np.round(kept, 6))
+
+
+def test_missing_mesh_is_one_line_and_exit_2(tmp_path):
+    out = tmp_path / "out.ply"
+    assert_one_line_error(cli("run", str(tmp_path / "nope.off"), "--ratio", "0.1", "--mesh", "-o", str(out)),
+                          "nope.off", "no such mesh file")
+    assert not out.exists()
+
+
+def test_point_cloud_without_faces_is_refused(tmp_path):
+    cloud = tmp_path / "cloud.ply"
+    trimesh.PointCloud(np.random.default_rng(0).normal(size=(100, 3))).export(cloud)
+    assert_one_line_error(cli("run", str(cloud), "--ratio", "0.1", "--mesh", "-o", str(tmp_path / "o.ply")),
+                          "no triangles")
+
+
+def test_unreadable_mesh_and_bad_output_are_one_line_errors(tmp_path, sphere_off):
+    broken = tmp_path / "broken.off"
+    broken.write_text("OFF\n3 1 0\n0 0 0\n")
+    with pytest.raises(PipelineError, match="not a readable mesh"):
+        read_mesh(broken)
+    result = CliRunner().invoke(pipeline_cli, ["run", str(sphere_off), "-r", "0.1", "--mesh",
+                                               "-o", str(tmp_path / "o.las")])
+    assert result.exit_code == 2 and "unsupported output type (use .ply, .obj, .off)" in result.output
+    existing = tmp_path / "kept.ply"
+    existing.write_text("mine")
+    result = CliRunner().invoke(pipeline_cli, ["run", str(sphere_off), "-r", "0.1", "--mesh", "-o", str(existing)])
+    assert result.exit_code == 2 and "already exists" in result.output and existing.read_text() == "mine"
+
+
+def test_obj_with_per_corner_normals_keeps_shared_vertices(tmp_path):
+    obj = tmp_path / "quad.obj"
+    obj.write_text("v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\nvn 0 0 1\nvn 0 0 -1\nf 1//1 2//1 3//1\nf 1//2 3//2 4//2\n")
+    vertices, faces = read_mesh(obj)
+    assert len(vertices) == 4 and faces.tolist() == [[0, 1, 2], [0, 2, 3]]
+
+
+def test_missing_open3d_names_the_extra(monkeypatch):
+    monkeypatch.setitem(sys.modules, "open3d", None)  # makes `import open3d` raise ImportError
+    with pytest.raises(PipelineError, match=r"pip install 'lidar-simplify\[mesh\]'"):
+        _open3d()
