@@ -15,7 +15,6 @@ import pytest
 from dask.distributed import Client
 
 import pipeline
-from pipeline.simulate import write_street_scan
 
 REPO = Path(__file__).resolve().parents[1]
 SETTINGS = dict(ratio=0.1, method="learned", tile_size=8.0, seed=3)
@@ -50,10 +49,8 @@ def scheduler() -> Iterator[str]:
 
 
 @pytest.fixture(scope="module")
-def scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("cluster") / "street.laz"
-    write_street_scan(path, n_points=60_000, seed=4)
-    return path
+def scan(street_scan: Path) -> Path:
+    return street_scan
 
 
 @pytest.fixture(scope="module")
