@@ -1,42 +1,82 @@
 """Quality metrics of the paper (section 4) between a reference cloud and a simplified one, in numpy.
 
-Chamfer distance uses the mean convention: mean over the reference of the squared distance to the
-nearest simplified point plus the mean over the simplified cloud of the squared distance back (the
-paper writes sums; means keep clouds of different sizes comparable). CE and RE follow the paper's
-eq. (curvature error): the root mean square, over reference points, of the difference between the
-reference's mean curvature (roughness for RE) and that of the nearest simplified point, each cloud's
-features computed on the cloud itself (model/geometry.py, k = 16).
+Conventions (lower is better for every metric; identical clouds score 0 on all):
+- Chamfer distance (CD): mean over the reference of the squared distance to the nearest simplified
+  point plus the mean over the simplified cloud of the squared distance back (the paper writes sums;
+  means keep clouds of different sizes comparable). A shift by d smaller than the spacing gives 2 d^2.
+- Hausdorff distance: the larger of the two directed maxima of the (plain, not squared) Euclidean
+  distance to the nearest point of the other cloud.
+- Normal consistency (NC): the paper's bi-directional 1 - cos between a point's normal and its nearest
+  neighbour's in the other cloud, with the two directions averaged (the paper sums them: its values are
+  twice ours). PCA normals have no sign, so by default each term is 1 - |cos| (0 same plane, 1
+  perpendicular); with oriented normals supplied, 1 - cos (2 where flipped).
+- CE and RE follow the paper's eq. (curvature error): the root mean square, over reference points, of
+  the difference between the reference's mean curvature (roughness for RE) and that of the nearest
+  simplified point.
+- SDM: model/sdm.py.
+Each cloud's features come from one kNN query on the cloud itself (model/geometry.py, k = 16), and each
+direction's nearest neighbours are queried once and shared by all metrics. Queries run in chunks.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
+from pykdtree.kdtree import KDTree
 
-from model.geometry import PointFeatures, point_features
+from model.geometry import CHUNK_POINTS, PointFeatures, point_features
+from model.sdm import structural_distortion
 
 
 @dataclass(frozen=True)
 class Quality:
-    """The metrics of one simplification."""
+    """The metrics of one simplification (see the module docstring for the conventions)."""
 
     chamfer: float
     curvature_error: float
     roughness_error: float
+    hausdorff: float
+    normal_consistency: float
+    sdm: float
 
 
-def nearest(points: np.ndarray, queries: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Squared distance and index of each query's nearest point."""
-    distance, index = cKDTree(points).query(queries, workers=-1)
-    return np.square(distance), index
+@dataclass(frozen=True)
+class Match:
+    """Each query point's nearest point in the other cloud: squared distance and index."""
+
+    sq_dist: np.ndarray
+    index: np.ndarray
+
+
+def nearest(points: np.ndarray, queries: np.ndarray) -> Match:
+    """The nearest of `points` to each query, queried in chunks so millions of queries fit in memory."""
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    queries = np.ascontiguousarray(queries, dtype=np.float64)
+    tree = KDTree(points)
+    sq_dist = np.empty(len(queries))
+    index = np.empty(len(queries), dtype=np.int64)
+    for start in range(0, len(queries), CHUNK_POINTS):
+        stop = start + CHUNK_POINTS
+        sq_dist[start:stop], index[start:stop] = tree.query(queries[start:stop], 1, sqr_dists=True)
+    return Match(sq_dist, index)
 
 
 def chamfer_distance(reference: np.ndarray, simplified: np.ndarray) -> float:
     """Mean squared NN distance reference->simplified plus simplified->reference."""
-    forward, _ = nearest(simplified, reference)
-    backward, _ = nearest(reference, simplified)
-    return float(forward.mean() + backward.mean())
+    return _chamfer(nearest(simplified, reference), nearest(reference, simplified))
+
+
+def hausdorff_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Symmetric Hausdorff distance (Euclidean, not squared): the larger directed maximum."""
+    return _hausdorff(nearest(b, a), nearest(a, b))
+
+
+def normal_consistency(a: np.ndarray, b: np.ndarray, normals_a: np.ndarray | None = None,
+                       normals_b: np.ndarray | None = None, oriented: bool = False) -> float:
+    """Mean over both directions of 1 - |cos| (1 - cos if `oriented`) between NN normals; PCA normals if not given."""
+    normals_a = point_features(a).normals if normals_a is None else normals_a
+    normals_b = point_features(b).normals if normals_b is None else normals_b
+    return _normal_consistency(normals_a, normals_b, nearest(b, a), nearest(a, b), oriented)
 
 
 def feature_error(reference_values: np.ndarray, simplified_values: np.ndarray, index: np.ndarray) -> float:
@@ -45,10 +85,43 @@ def feature_error(reference_values: np.ndarray, simplified_values: np.ndarray, i
 
 
 def quality(reference: np.ndarray, simplified: np.ndarray, reference_features: PointFeatures | None = None) -> Quality:
-    """CD, CE and RE of `simplified` against `reference` (pass reference features to reuse them)."""
-    reference_features = reference_features or point_features(reference)
-    simplified_features = point_features(simplified)
-    _, index = nearest(simplified, reference)
-    return Quality(chamfer_distance(reference, simplified),
-                   feature_error(reference_features.mean_curvature, simplified_features.mean_curvature, index),
-                   feature_error(reference_features.roughness, simplified_features.roughness, index))
+    """Every metric of `simplified` against `reference` (pass reference features to reuse them)."""
+    ref = reference_features or point_features(reference)
+    simp = point_features(simplified)
+    forward, backward = nearest(simplified, reference), nearest(reference, simplified)
+    return Quality(chamfer=_chamfer(forward, backward),
+                   curvature_error=feature_error(ref.mean_curvature, simp.mean_curvature, forward.index),
+                   roughness_error=feature_error(ref.roughness, simp.roughness, forward.index),
+                   hausdorff=_hausdorff(forward, backward),
+                   normal_consistency=_normal_consistency(ref.normals, simp.normals, forward, backward),
+                   sdm=structural_distortion(ref, simp, forward.index, backward.index))
+
+
+def _chamfer(forward: Match, backward: Match) -> float:
+    return float(forward.sq_dist.mean() + backward.sq_dist.mean())
+
+
+def _hausdorff(forward: Match, backward: Match) -> float:
+    return float(np.sqrt(max(forward.sq_dist.max(), backward.sq_dist.max())))
+
+
+def _normal_consistency(normals_a: np.ndarray, normals_b: np.ndarray, forward: Match, backward: Match,
+                        oriented: bool = False) -> float:
+    """`forward` matches each point of a in b, `backward` each point of b in a."""
+    def directed(normals: np.ndarray, other: np.ndarray, match: Match) -> float:
+        total = 0.0
+        for start in range(0, len(normals), CHUNK_POINTS):
+            stop = start + CHUNK_POINTS
+            cos = np.einsum("ij,ij->i", _unit(normals[start:stop]), _unit(other[match.index[start:stop]]))
+            cos = np.clip(cos, -1, 1)  # round-off can pass 1, and NC of twins must be 0, not -1e-17
+            total += float(np.sum(1 - (cos if oriented else np.abs(cos))))
+        return total / len(normals)
+
+    return (directed(normals_a, normals_b, forward) + directed(normals_b, normals_a, backward)) / 2
+
+
+def _unit(vectors: np.ndarray) -> np.ndarray:
+    """Vectors scaled to unit length in float64 (zero vectors stay zero)."""
+    vectors = np.asarray(vectors, dtype=np.float64)
+    length = np.linalg.norm(vectors, axis=1, keepdims=True)
+    return np.divide(vectors, length, out=np.zeros_like(vectors), where=length > 0)

@@ -1,4 +1,4 @@
-"""The `pipeline` command line: run, info, demo. Errors print one line and exit non-zero."""
+"""The `pipeline` command line: run, info, eval, compare, demo, train. Errors print one line and exit non-zero."""
 from __future__ import annotations
 
 import json
@@ -11,6 +11,7 @@ import click
 import configs
 from pipeline.config import METHODS, build_config
 from pipeline.errors import PipelineError
+from pipeline.evaluate import DEFAULT_SAMPLE
 from pipeline.info import format_summary, summarize
 
 EXIT_ERROR = 2
@@ -37,6 +38,8 @@ def cli() -> None:
       pipeline run scan.laz --ratio 0.1 -o scan_small.laz
       pipeline run part1.laz part2.laz --ratio 0.05 -o merged.zarr --workers 4
       pipeline info scan.laz --json
+      pipeline eval scan.laz scan_small.laz other.zarr
+      pipeline compare scan.laz --ratios 0.2,0.1 --methods fps,learned
       pipeline demo
     """
 
@@ -178,6 +181,43 @@ def info_command(input_file: Path, as_json: bool) -> None:
     """Summarise INPUT: points, LAS version, point format, bounds, scale/offset, CRS, dimensions."""
     summary = summarize(input_file)
     click.echo(json.dumps(summary, indent=2) if as_json else format_summary(summary))
+
+
+@cli.command("eval")
+@click.argument("reference", type=click.Path(path_type=Path))
+@click.argument("candidates", metavar="CANDIDATE...", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--json", "as_json", is_flag=True, help="Print the metrics as JSON.")
+@click.option("--sample", type=int, default=DEFAULT_SAMPLE, show_default=True,
+              help="Evaluate on seeded whole grid cells holding about this many reference points; 0: every point.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the sample.")
+def eval_command(reference: Path, candidates: tuple[Path, ...], as_json: bool, sample: int, seed: int) -> None:
+    """Score CANDIDATE outputs (LAS/LAZ/PLY/zarr) against REFERENCE: CD, Hausdorff, NC, CE, RE, SDM."""
+    from pipeline.evaluate import evaluate, format_scores, reference_json, score_json
+
+    ref, scores = evaluate(reference, list(candidates), sample, seed)
+    click.echo(json.dumps({**reference_json(ref), "candidates": [score_json(s) for s in scores]}, indent=2)
+               if as_json else format_scores(ref, scores))
+
+
+@cli.command("compare")
+@click.argument("input_file", metavar="INPUT", type=click.Path(path_type=Path))
+@click.option("--ratios", default="0.2,0.1,0.05", show_default=True, help="Comma-separated ratios to keep.")
+@click.option("--methods", default="learned,fps,voxel,random,tcp", show_default=True,
+              help="Comma-separated methods to run.")
+@click.option("--out-dir", type=click.Path(path_type=Path), default=Path("compare"), show_default=True,
+              help="Folder for compare.md, compare.json, the plots and the simplified scans (runs/).")
+@click.option("--workers", "-w", type=int, default=2, show_default=True, help="Dask worker processes per run.")
+@click.option("--sample", type=int, default=DEFAULT_SAMPLE, show_default=True,
+              help="Evaluate on seeded whole grid cells holding about this many input points; 0: every point.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the runs and of the sample.")
+def compare_command(input_file: Path, ratios: str, methods: str, out_dir: Path, workers: int, sample: int,
+                    seed: int) -> None:
+    """Simplify INPUT with each method at each ratio and compare them: table, JSON, plots, a region view."""
+    from pipeline.compare import RunOptions, compare, parse_list, parse_ratios
+
+    written = compare(input_file, parse_ratios(ratios), parse_list(methods, "--methods"), out_dir,
+                      RunOptions(workers=workers, seed=seed), sample)
+    click.echo("\n".join(str(path) for path in written))
 
 
 @cli.command("demo")

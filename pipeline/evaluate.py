@@ -1,0 +1,127 @@
+"""`pipeline eval`: every quality metric (model/metrics.py) of simplified clouds against their reference.
+
+Big scans are evaluated on a sample: whole XY grid cells of the reference (about 256 cells over its box),
+drawn in seeded random order until they hold `sample` reference points, with every candidate cropped
+to the same cells. Whole cells rather than scattered points keep local density, normals and curvature
+as they are in the full scan; only points near cell borders see truncated neighbourhoods, and their
+nearest point in the other cloud may lie just outside. Hausdorff, a maximum, feels that most (on a 20k
+street scan, 1.5 m sampled against 0.15 m exact for FPS at 0.2); `--sample 0` gives exact values.
+"""
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from model.geometry import PointFeatures, point_features
+from model.metrics import Quality, quality
+from pipeline.errors import PipelineError
+from pipeline.points import Cells, covering_grid, load_xyz, point_count, xyz_chunks
+
+DEFAULT_SAMPLE = 200_000
+SAMPLE_CELLS = 256
+# (column title, Quality field, format): one definition for the eval and compare tables
+METRIC_COLUMNS = (("CD", "chamfer", ".4g"), ("Hausdorff", "hausdorff", ".4g"), ("NC", "normal_consistency", ".4f"),
+                  ("CE", "curvature_error", ".4f"), ("RE", "roughness_error", ".4f"), ("SDM", "sdm", ".4f"))
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The reference as evaluated: its (cropped, centred) points and their features, computed once."""
+
+    path: Path
+    points: int
+    cells: Cells | None
+    centre: np.ndarray
+    xyz: np.ndarray
+    features: PointFeatures
+
+
+@dataclass(frozen=True)
+class Score:
+    """One candidate's metrics: points in its file, points evaluated (inside the sample cells)."""
+
+    path: Path
+    points: int
+    evaluated_points: int
+    quality: Quality
+
+
+def sample_cells(path: Path, sample: int, seed: int) -> Cells | None:
+    """Seeded whole grid cells holding at least `sample` points of `path`; None when it has no more than that."""
+    if sample <= 0 or point_count(path) <= sample:
+        return None
+    lows, highs = zip(*((xyz.min(axis=0), xyz.max(axis=0)) for xyz in xyz_chunks(path)))
+    grid = covering_grid(np.min(lows, axis=0), np.max(highs, axis=0), SAMPLE_CELLS)
+    counts = np.zeros(grid.shape[0] * grid.shape[1], dtype=np.int64)
+    for xyz in xyz_chunks(path):
+        counts += np.bincount(grid.keys(xyz), minlength=len(counts))
+    order = np.random.default_rng(seed).permutation(np.flatnonzero(counts))
+    taken = int(np.searchsorted(np.cumsum(counts[order]), sample)) + 1
+    return Cells(grid.origin, grid.side, grid.shape, np.sort(order[:taken]))
+
+
+def prepare_reference(path: Path, sample: int = DEFAULT_SAMPLE, seed: int = 0) -> Reference:
+    """Load the reference (or its sample cells), centre it and compute its features once for every candidate."""
+    cells = sample_cells(path, sample, seed)
+    xyz = load_xyz(path, cells)
+    centre = xyz.mean(axis=0)
+    xyz = xyz - centre  # kd-trees and covariances on centred coordinates (DESIGN: traps)
+    return Reference(path, point_count(path), cells, centre, xyz, point_features(xyz))
+
+
+def score(reference: Reference, path: Path) -> Score:
+    """Metrics of one candidate file against the prepared reference, on the same cells."""
+    xyz = load_xyz(path, reference.cells) - reference.centre
+    if len(xyz) == 0:
+        raise PipelineError(f"{path}: no points where {reference.path} was evaluated")
+    return Score(path, point_count(path), len(xyz), quality(reference.xyz, xyz, reference.features))
+
+
+def evaluate(reference_path: Path, candidates: Sequence[Path], sample: int = DEFAULT_SAMPLE,
+             seed: int = 0) -> tuple[Reference, list[Score]]:
+    """Prepare the reference once, then score every candidate against it."""
+    for path in (reference_path, *candidates):
+        if not path.exists():
+            raise PipelineError(f"{path}: no such file")
+    reference = prepare_reference(reference_path, sample, seed)
+    return reference, [score(reference, path) for path in candidates]
+
+
+def metric_cells(q: Quality) -> list[str]:
+    """The metric columns of one table row."""
+    return [format(getattr(q, field), spec) for _, field, spec in METRIC_COLUMNS]
+
+
+def markdown_table(titles: Sequence[str], rows: Sequence[Sequence[str]]) -> str:
+    """A Markdown table, first column left-aligned and the others right-aligned."""
+    lines = ["| " + " | ".join(titles) + " |", "| --- |" + " ---: |" * (len(titles) - 1)]
+    return "\n".join(lines + ["| " + " | ".join(row) + " |" for row in rows])
+
+
+def sample_note(reference: Reference) -> str:
+    """One line saying what part of the reference the metrics cover."""
+    share = "all points" if reference.cells is None else f"{len(reference.cells.chosen)} sampled grid cells"
+    return (f"reference {reference.path}: {reference.points:,} points; evaluated on {len(reference.xyz):,} "
+            f"({share}); lower is better for every metric")
+
+
+def format_scores(reference: Reference, scores: Sequence[Score]) -> str:
+    """The `pipeline eval` table: one row per candidate."""
+    titles = ["candidate", "points", *(title for title, _, _ in METRIC_COLUMNS)]
+    rows = [[str(s.path), f"{s.points:,}", *metric_cells(s.quality)] for s in scores]
+    return sample_note(reference) + "\n\n" + markdown_table(titles, rows)
+
+
+def reference_json(reference: Reference) -> dict[str, Any]:
+    """What the JSON outputs say about the reference and the sample."""
+    return {"reference": str(reference.path), "reference_points": reference.points,
+            "evaluated_reference_points": len(reference.xyz),
+            "sample_cells": None if reference.cells is None else len(reference.cells.chosen)}
+
+
+def score_json(s: Score) -> dict[str, Any]:
+    """One candidate's JSON record: its path, point counts and every metric."""
+    return {"path": str(s.path), "points": s.points, "evaluated_points": s.evaluated_points, **asdict(s.quality)}

@@ -1,0 +1,87 @@
+"""Coordinates of a scan or an output (LAS/LAZ/PLY, or a zarr store's x, y, z), streamed in chunks and
+optionally cropped to a set of XY grid cells, so evaluation never holds more of a big scan than it uses."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import zarr
+
+from pipeline.errors import PipelineError
+from pipeline.scan import Scan
+
+CHUNK = 1_000_000
+
+
+@dataclass(frozen=True)
+class Cells:
+    """Chosen cells of a square XY grid (row-major keys); a point belongs if its cell is chosen.
+
+    Points outside the grid count in the nearest edge cell, so a refined point that strayed a little
+    past the reference's bounds is not lost.
+    """
+
+    origin: np.ndarray  # (2,) lower-left corner
+    side: float
+    shape: tuple[int, int]
+    chosen: np.ndarray  # sorted int64 keys
+
+    def keys(self, xyz: np.ndarray) -> np.ndarray:
+        """The grid key of each point."""
+        ij = np.floor((xyz[:, :2] - self.origin) / self.side).astype(np.int64)
+        ij = np.clip(ij, 0, np.array(self.shape) - 1)
+        return ij[:, 0] * self.shape[1] + ij[:, 1]
+
+    def contains(self, xyz: np.ndarray) -> np.ndarray:
+        """Mask of the points inside the chosen cells."""
+        return np.isin(self.keys(xyz), self.chosen)
+
+
+def covering_grid(low: np.ndarray, high: np.ndarray, cells: int) -> Cells:
+    """A grid of about `cells` square cells over the XY box [low, high], none chosen yet."""
+    extent = np.maximum(high[:2] - low[:2], 1e-9)
+    side = float(np.sqrt(extent[0] * extent[1] / cells)) or 1.0
+    shape = tuple(int(v) for v in np.maximum(np.ceil(extent / side), 1))
+    return Cells(np.asarray(low[:2], dtype=np.float64), side, shape, np.empty(0, dtype=np.int64))
+
+
+def point_count(path: Path) -> int:
+    """Points in a file or zarr store, from its header or array shape."""
+    if _is_zarr(path):
+        return int(_zarr_xyz(path)[0].shape[0])
+    return Scan([path]).point_count
+
+
+def xyz_chunks(path: Path) -> Iterator[np.ndarray]:
+    """Float64 (m, 3) coordinates of consecutive points, CHUNK at a time."""
+    if _is_zarr(path):
+        arrays = _zarr_xyz(path)
+        for start in range(0, arrays[0].shape[0], CHUNK):
+            yield np.column_stack([np.asarray(a[start:start + CHUNK], dtype=np.float64) for a in arrays])
+        return
+    scan = Scan([path])
+    for piece in scan.pieces(CHUNK):
+        yield scan.read(piece).xyz
+
+
+def load_xyz(path: Path, cells: Cells | None = None) -> np.ndarray:
+    """All coordinates of a file, or those inside `cells`."""
+    parts = [xyz if cells is None else xyz[cells.contains(xyz)] for xyz in xyz_chunks(path)]
+    return np.concatenate(parts) if parts else np.empty((0, 3))
+
+
+def _is_zarr(path: Path) -> bool:
+    return path.suffix.lower() == ".zarr"
+
+
+def _zarr_xyz(path: Path) -> list[zarr.Array]:
+    """The x, y, z arrays of a zarr output (one group, one 1-D array per dimension)."""
+    if not path.is_dir():
+        raise PipelineError(f"{path}: no such zarr store")
+    try:
+        group = zarr.open_group(str(path), mode="r")
+        return [group[name] for name in "xyz"]
+    except (KeyError, FileNotFoundError, ValueError, zarr.errors.BaseZarrError) as exc:
+        raise PipelineError(f"{path}: not a zarr point store with x, y, z arrays ({exc})") from None
