@@ -9,20 +9,22 @@ import click
 
 import configs
 from pipeline.config import METHODS, build_config
-from pipeline.errors import PipelineError
+from pipeline.errors import PipelineError, file_system_error
 from pipeline.info import format_summary, summarize
 
 EXIT_ERROR = 2
 
 
 class OneLineErrors(click.Group):
-    """Turns PipelineError (and lazrs panics) into `pipeline: error: ...` and exit code 2, no traceback."""
+    """Turns PipelineError (and lazrs panics) into `pipeline: error: ...` and exit code 2, no traceback;
+    so too a file-system error no check foresaw (a disk filling up, a folder vanishing): it names its path."""
 
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
-        except PipelineError as exc:
-            click.echo(f"pipeline: error: {exc}", err=True)
+        except (PipelineError, OSError) as exc:
+            message = file_system_error(exc) if isinstance(exc, OSError) else exc
+            click.echo(f"pipeline: error: {message}", err=True)
             sys.exit(EXIT_ERROR)
 
 
@@ -59,18 +61,21 @@ def cli() -> None:
 @click.option("--scratch", type=click.Path(path_type=Path), default=None,
               help="Folder for temporary tiles. [default: the output's folder]")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output.")
+@click.option("--allow-geographic", is_flag=True,
+              help="Run on coordinates in degrees (EPSG:4326 etc.); sizes and distances are then in degrees.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 @click.option("--verbose", "-v", is_flag=True, help="Also print the time of each phase.")
 def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, method: str | None,
                 tile_size: float | None, overlap: float | None, max_tile_points: int | None,
                 seam_tolerance: float | None, workers: int | None, memory_limit: str | None, config: str | None,
-                seed: int | None, scratch: Path | None, overwrite: bool, quiet: bool, verbose: bool) -> None:
+                seed: int | None, scratch: Path | None, overwrite: bool, allow_geographic: bool, quiet: bool,
+                verbose: bool) -> None:
     """Simplify INPUTS (LAS/LAZ/COPC/PLY files that together form one scan) to one output."""
     from pipeline.runner import run_scan
 
     settings = build_config(config, ratio=ratio, method=method, tile_size=tile_size, overlap=overlap,
                             max_tile_points=max_tile_points, seam_tolerance=seam_tolerance, workers=workers,
-                            memory_limit=memory_limit, seed=seed)
+                            memory_limit=memory_limit, seed=seed, allow_geographic=allow_geographic or None)
     report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch,
                       show_progress=not quiet and sys.stderr.isatty())
     if not quiet:
