@@ -19,6 +19,7 @@ from pipeline.errors import PipelineError
 from pipeline.execute import local_cluster, map_tasks
 from pipeline.scan import Piece, Scan
 from pipeline.tasks import TileJob, bucket_piece, simplify_tile
+from pipeline.validate import check_run
 from pipeline.writers import OUTPUT_SUFFIXES, OutputMeta, TilePart, write_output
 from tiling.budgets import target_count, tile_budgets
 from tiling.bucket import row_ranges
@@ -73,6 +74,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     scan = Scan(inputs)
     output = Path(output) if output is not None else default_output(scan.paths[0])
     check_output(output, overwrite)
+    check_run(scan, config.allow_geographic, Path(scratch or output.parent))
     scratch_dir = Path(tempfile.mkdtemp(prefix=f".{output.name}.scratch-", dir=scratch or output.parent))
     try:
         with local_cluster(config.workers, config.memory_limit) as client:
