@@ -5,7 +5,7 @@ import fpsample
 import numpy as np
 
 from model.geometry import curvature, knn, local_frames
-from model.selection import Selection, Tile, kept_count
+from model.selection import Selection, Tile, kept_count, topped_up
 
 FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core
 VOXEL_COUNT_SLACK = 0.02  # the searched cell may give up to 2 % more voxels than the budget; the rest are trimmed
@@ -32,23 +32,31 @@ def fps_simplify(tile: Tile, budget: int) -> Selection:
     """Farthest point sampling over core+halo (so spacing continues across seams), keeping core picks.
 
     fpsample's bucket FPS returns points in FPS order; the halo share of the samples is estimated and
-    the run repeated with more samples if too few core points came out.
+    the run repeated with more samples if too few core points came out. Exact duplicates come last.
     """
     budget = min(budget, tile.core_count)
     if budget == 0:
         return Selection.of(tile, np.empty(0, dtype=np.int64))
     n = len(tile.xyz)
     core = np.flatnonzero(tile.core)
-    start = int(core[np.random.default_rng(tile.seed).integers(len(core))])
+    rng = np.random.default_rng(tile.seed)
+    start = int(core[rng.integers(len(core))])
     points = np.ascontiguousarray(tile.xyz, dtype=np.float32)
     wanted = budget * n / len(core) * FPS_OVERSHOOT
     while True:
         samples = min(n, int(np.ceil(wanted)) + 1)
-        order = _fps_order(points, samples, start)
+        order = _first_occurrences(_fps_order(points, samples, start))
         picks = order[tile.core[order]]
         if len(picks) >= budget or samples == n:
-            return Selection.of(tile, picks[:budget])
+            return Selection.of(tile, topped_up(picks, core, budget, rng))
         wanted = samples * 1.5 * budget / max(len(picks), 1)
+
+
+def _first_occurrences(order: np.ndarray) -> np.ndarray:
+    """Each index once, where it first comes: fpsample repeats indices once every point left coincides
+    with a picked one (exact duplicates, all at distance 0)."""
+    _, first = np.unique(order, return_index=True)
+    return order[np.sort(first)]
 
 
 def _fps_order(points: np.ndarray, samples: int, start: int) -> np.ndarray:
@@ -75,11 +83,7 @@ def voxel_simplify(tile: Tile, budget: int) -> Selection:
     cell = _cell_for_budget(points, budget)
     reps = core[_voxel_representatives(points, cell)]
     rng = np.random.default_rng(tile.seed)
-    order = rng.permutation(reps)
-    if len(order) < budget:
-        rest = np.setdiff1d(core, reps, assume_unique=True)
-        order = np.concatenate([order, rng.permutation(rest)])
-    return Selection.of(tile, order[:budget])
+    return Selection.of(tile, topped_up(rng.permutation(reps), core, budget, rng))
 
 
 def _voxel_keys(points: np.ndarray, cell: float, mins: np.ndarray, maxs: np.ndarray) -> np.ndarray:

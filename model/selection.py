@@ -54,3 +54,12 @@ class Simplifier(Protocol):
     """Picks `budget` core points of a tile (fewer only if the tile has fewer core points)."""
 
     def __call__(self, tile: Tile, budget: int) -> Selection: ...
+
+
+def topped_up(order: np.ndarray, core: np.ndarray, budget: int, rng: np.random.Generator) -> np.ndarray:
+    """`order` (distinct core indices) cut to `budget`, or followed by the other core points in random order
+    when it is short: exact duplicates, which neither FPS nor voxels can tell apart, fill the count last."""
+    if len(order) >= budget:
+        return order[:budget]
+    rest = np.setdiff1d(core, order, assume_unique=True)
+    return np.concatenate([order, rng.permutation(rest)])[:budget]

@@ -10,7 +10,7 @@ import click
 
 import configs
 from pipeline.config import METHODS, build_config
-from pipeline.errors import PipelineError
+from pipeline.errors import PipelineError, file_system_error
 from pipeline.evaluate import DEFAULT_SAMPLE
 from pipeline.info import format_summary, summarize
 
@@ -18,13 +18,15 @@ EXIT_ERROR = 2
 
 
 class OneLineErrors(click.Group):
-    """Turns PipelineError (and lazrs panics) into `pipeline: error: ...` and exit code 2, no traceback."""
+    """Turns PipelineError (and lazrs panics) into `pipeline: error: ...` and exit code 2, no traceback;
+    so too a file-system error no check foresaw (a disk filling up, a folder vanishing): it names its path."""
 
     def invoke(self, ctx: click.Context):
         try:
             return super().invoke(ctx)
-        except PipelineError as exc:
-            click.echo(f"pipeline: error: {exc}", err=True)
+        except (PipelineError, OSError) as exc:
+            message = file_system_error(exc) if isinstance(exc, OSError) else exc
+            click.echo(f"pipeline: error: {message}", err=True)
             sys.exit(EXIT_ERROR)
 
 
@@ -65,6 +67,8 @@ def cli() -> None:
 @click.option("--scheduler", default=None, metavar="tcp://HOST:PORT",
               help="Run on this existing Dask cluster (workers need the inputs and --scratch at the same paths).")
 @click.option("--overwrite", is_flag=True, help="Replace an existing output.")
+@click.option("--allow-geographic", is_flag=True,
+              help="Run on coordinates in degrees (EPSG:4326 etc.); sizes and distances are then in degrees.")
 @click.option("--quiet", "-q", is_flag=True, help="No progress bar or summary.")
 @click.option("--verbose", "-v", is_flag=True, help="Also print the time of each phase.")
 @click.option("--log-json", is_flag=True, help="Print the outcome as one JSON line on stdout (also on failure).")
@@ -73,15 +77,15 @@ def cli() -> None:
 def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, method: str | None,
                 tile_size: float | None, overlap: float | None, max_tile_points: int | None,
                 seam_tolerance: float | None, workers: int | None, memory_limit: str | None, config: str | None,
-                seed: int | None, scratch: Path | None, scheduler: str | None, overwrite: bool, quiet: bool,
-                verbose: bool, log_json: bool, mesh: bool) -> None:
+                seed: int | None, scratch: Path | None, scheduler: str | None, overwrite: bool,
+                allow_geographic: bool, quiet: bool, verbose: bool, log_json: bool, mesh: bool) -> None:
     """Simplify INPUTS (LAS/LAZ/COPC/PLY files that together form one scan) to one output."""
     from pipeline.runner import run_scan
 
     try:
         settings = build_config(config, ratio=ratio, method=method, tile_size=tile_size, overlap=overlap,
                                 max_tile_points=max_tile_points, seam_tolerance=seam_tolerance, workers=workers,
-                                memory_limit=memory_limit, seed=seed)
+                                memory_limit=memory_limit, seed=seed, allow_geographic=allow_geographic or None)
         if mesh:
             from pipeline.mesh_mode import run_mesh
 

@@ -31,6 +31,7 @@ class RunConfig:
     memory_limit: str = "2GB"
     chunk_points: int = 1_000_000
     seed: int = 0
+    allow_geographic: bool = False  # run on coordinates in degrees (tile sizes and distances become degrees)
 
     def validated(self) -> "RunConfig":
         """Return self after checking every value, raising PipelineError naming the bad one."""

@@ -1,18 +1,45 @@
-"""The scan's coordinate reference system as WKT, from its LAS VLRs (pyproj when it can parse them)."""
+"""The scan's coordinate reference system: its WKT from the LAS VLRs, and whether it is in degrees."""
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import laspy
+import numpy as np
+
+if TYPE_CHECKING:
+    import pyproj
+
+DEGREE_SCALE = 1e-5  # a grid step this fine (about 1 m in degrees is 1e-5) only makes sense for angles
+
+
+def parsed_crs(header: laspy.LasHeader) -> pyproj.CRS | None:
+    """The header's CRS as pyproj reads it, or None without one or when it cannot be parsed."""
+    try:
+        return header.parse_crs()
+    except Exception:  # an unparseable WKT (e.g. warsaw_small.las) must not stop the run
+        return None
 
 
 def crs_wkt(header: laspy.LasHeader) -> str | None:
     """WKT of the header's CRS, the raw WKT VLR text if pyproj cannot parse it, or None without one."""
-    try:
-        crs = header.parse_crs()
-    except Exception:  # an unparseable WKT (e.g. warsaw_small.las) must not stop the run
-        crs = None
+    crs = parsed_crs(header)
     if crs is not None and crs.to_wkt():
         return crs.to_wkt()
     for vlr in header.vlrs:
         if isinstance(vlr, laspy.vlrs.known.WktCoordinateSystemVlr) and vlr.string:
             return vlr.string.strip("\x00")
+    return None
+
+
+def degrees_reason(header: laspy.LasHeader) -> str | None:
+    """Why the coordinates are in degrees (a geographic CRS, or no CRS but lon/lat-looking values on a
+    sub-metre-in-degrees grid), or None. Tile sizes, halos and neighbourhoods are in metres."""
+    crs = parsed_crs(header)
+    if crs is not None:
+        return f"its CRS {crs.name!r} is geographic (coordinates in degrees)" if crs.is_geographic else None
+    mins, maxs = np.asarray(header.mins, float), np.asarray(header.maxs, float)
+    in_range = mins[0] >= -180 and maxs[0] <= 180 and mins[1] >= -90 and maxs[1] <= 90
+    if in_range and max(header.scales[0], header.scales[1]) <= DEGREE_SCALE:
+        return (f"it has no CRS and its coordinates look like degrees (x {mins[0]:g}..{maxs[0]:g}, "
+                f"y {mins[1]:g}..{maxs[1]:g}, scale {header.scales[0]:g})")
     return None

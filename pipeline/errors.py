@@ -1,8 +1,25 @@
 """The one exception type the CLI turns into a single-line message and a non-zero exit."""
+from __future__ import annotations
+
+from pathlib import Path
 
 
 class PipelineError(Exception):
-    """A failure the user can act on: the message names the file and the problem in one line."""
+    """A failure the user can act on: the message names the file and the problem in one line.
+
+    A multi-line message (e.g. a library's error text) is joined with '; ', so the CLI prints one line.
+    """
+
+    def __init__(self, message: str) -> None:
+        super().__init__("; ".join(line.strip() for line in str(message).splitlines() if line.strip()))
+
+
+def file_system_error(exc: OSError, path: str | Path | None = None) -> PipelineError:
+    """One line naming the file (`path` if given, else the one the system names) and what the system said,
+    e.g. 'out.laz: No space left on device'."""
+    where = path if path is not None else exc.filename
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    return PipelineError(f"{where}: {reason}" if where is not None else reason)
 
 
 def is_fatal_signal(exc: BaseException) -> bool:

@@ -29,7 +29,10 @@ def local_cluster(workers: int, memory_limit: str) -> Iterator[Client]:
     environ = {**dask.config.get("distributed.nanny.pre-spawn-environ", {}), **ONE_THREAD}  # keeps MALLOC_TRIM_THRESHOLD_
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
         with LocalCluster(n_workers=workers, threads_per_worker=1, memory_limit=memory_limit, processes=True,
-                          dashboard_address=None, preload=[WORKER_PRELOAD]) as cluster, Client(cluster) as client:
+                          dashboard_address=None, preload=[WORKER_PRELOAD],
+                          # no dashboard; the scheduler's health-check server takes a free port, not 8787,
+                          # which another run may hold (Dask then warns on stderr, breaking one-line errors)
+                          scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cluster, Client(cluster) as client:
             client.register_plugin(QuietWorkerLogs())
             yield client
 

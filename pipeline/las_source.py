@@ -14,12 +14,13 @@ import laspy
 import numpy as np
 
 from pipeline.errors import PipelineError, is_fatal_signal
+from pipeline.validate import LAS_PREAMBLE_BYTES, check_las_header, check_las_preamble
 
 
 def describe_failure(path: Path, exc: BaseException) -> PipelineError:
     """One line naming the file and what laspy/lazrs said (PanicException included)."""
     detail = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-    return PipelineError(f"{path}: cannot read LAS/LAZ data: {detail}")
+    return PipelineError(f"{path}: cannot read LAS/LAZ data (corrupt, truncated or unsupported file?): {detail}")
 
 
 VERSION_MINOR_OFFSET = 25  # header byte holding the LAS minor version
@@ -57,12 +58,16 @@ class Las10AsLas11(io.RawIOBase):
 
 
 def open_las(path: Path) -> laspy.LasReader:
-    """laspy's reader on path, with LAS 1.0 files presented as 1.1."""
+    """laspy's reader on path, with LAS 1.0 files presented as 1.1, once its preamble is checked.
+
+    LAZ is decoded by lazrs's single-threaded decompressor: workers run one thread each, and after a seek
+    the multi-threaded one returns zero-filled points where a file holds fewer than its header declares.
+    """
     with open(path, "rb") as probe:
-        head = probe.read(VERSION_MINOR_OFFSET + 1)
-    if head[:4] == b"LASF" and len(head) > VERSION_MINOR_OFFSET and head[24:26] == b"\x01\x00":
-        return laspy.open(io.BufferedReader(Las10AsLas11(path)))
-    return laspy.open(path)
+        head = probe.read(LAS_PREAMBLE_BYTES)
+        check_las_preamble(path, head, os.fstat(probe.fileno()).st_size)
+    source = io.BufferedReader(Las10AsLas11(path)) if head[24:26] == b"\x01\x00" else path
+    return laspy.open(source, laz_backend=laspy.LazBackend.Lazrs)
 
 
 @contextmanager
@@ -93,15 +98,16 @@ class LasSource:
 
     def __init__(self, path: Path) -> None:
         self.path = path
-        if not path.is_file():
-            raise PipelineError(f"{path}: no such file")
         try:
             with open_las(path) as reader:
                 self.header: laspy.LasHeader = copy.deepcopy(reader.header)
+        except PipelineError:
+            raise
         except BaseException as exc:  # lazrs raises PanicException, a BaseException
             if is_fatal_signal(exc):
                 raise
             raise describe_failure(path, exc) from None
+        check_las_header(path, self.header, path.stat().st_size)
 
     @property
     def point_count(self) -> int:

@@ -25,8 +25,6 @@ class PlySource:
 
     def __init__(self, path: Path, chunk: int = 1_000_000) -> None:
         self.path = path
-        if not path.is_file():
-            raise PipelineError(f"{path}: no such file")
         self._vertices = self._open_vertices()
         names = [p.name for p in self._vertices.properties]
         if not set(XYZ) <= set(names):

@@ -19,6 +19,7 @@ from pipeline.atomic import remove_stale_temporaries
 from pipeline.execute import cluster, map_tasks
 from pipeline.scan import Piece, Scan
 from pipeline.tasks import TileJob, bucket_piece, simplify_tile
+from pipeline.validate import check_run
 from pipeline.workdir import WorkDir
 from pipeline.writers import OUTPUT_SUFFIXES, OutputMeta, TilePart, write_output
 from tiling.budgets import target_count, tile_budgets
@@ -81,6 +82,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     scan = Scan(inputs)
     output = Path(output) if output is not None else default_output(scan.paths[0])
     check_output(output, overwrite)
+    check_run(scan, config.allow_geographic, Path(scratch or output.parent))
     remove_stale_temporaries(output)
     work = WorkDir.for_run(output, Path(scratch) if scratch else None, scan.paths, config)
     try:

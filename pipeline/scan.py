@@ -12,6 +12,7 @@ import numpy as np
 from pipeline.errors import PipelineError
 from pipeline.las_source import LasSource
 from pipeline.ply_source import PlySource
+from pipeline.validate import OutsideBounds, check_input_path, check_points
 
 LAS_SUFFIXES = (".las", ".laz")
 
@@ -46,6 +47,7 @@ def scaled_xyz(records: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> 
 
 def open_source(path: Path) -> LasSource | PlySource:
     """A reader for one file, chosen by suffix (COPC `.copc.laz` is LAZ)."""
+    check_input_path(path)
     suffix = path.suffix.lower()
     if suffix in LAS_SUFFIXES:
         return LasSource(path)
@@ -131,10 +133,34 @@ class Scan:
         return pieces
 
     def read(self, piece: Piece) -> Chunk:
-        """One piece's records on this scan's grid and their xyz, with a finiteness check."""
+        """One piece's records on this scan's grid and their xyz, checked finite and inside the file's bounds."""
         source = self.sources[piece.source]
         records = self._to_grid(source.read(piece.start, piece.count), source)
         xyz = self.decode_xyz(records)
-        if not np.isfinite(xyz).all():
-            raise PipelineError(f"{source.path}: NaN or infinite coordinates")
+        check_points(source.path, xyz, source.header)
         return Chunk(records, xyz)
+
+    def probe(self, count: int) -> None:
+        """Decode the first `count` points of every file, so a corrupt one fails before any worker starts.
+
+        A file whose header bounds miss even those points (bounds written unscaled, as in simple1_3.las)
+        gets its bounds measured by one streamed pass; points that stray later fail in the worker.
+        """
+        first = 0
+        for number, source in enumerate(self.sources):
+            if source.point_count:
+                try:
+                    self.read(Piece(-1, number, 0, min(count, source.point_count), first))  # -1: never stored
+                except OutsideBounds:
+                    self._measure_bounds(source)
+            first += source.point_count
+
+    @staticmethod
+    def _measure_bounds(source: LasSource | PlySource, chunk: int = 1_000_000) -> None:
+        """Replace the source header's min/max xyz by those of its points, read in chunks."""
+        mins, maxs = np.full(3, np.inf), np.full(3, -np.inf)
+        scales, offsets = np.asarray(source.header.scales), np.asarray(source.header.offsets)
+        for start in range(0, source.point_count, chunk):
+            xyz = scaled_xyz(source.read(start, min(chunk, source.point_count - start)), scales, offsets)
+            mins, maxs = np.minimum(mins, xyz.min(axis=0)), np.maximum(maxs, xyz.max(axis=0))
+        source.header.mins, source.header.maxs = mins, maxs

@@ -89,3 +89,15 @@ def test_tiny_tiles(method, n):
     tile = Tile(xyz, np.ones(n, bool), np.zeros(3), seed=2)
     assert len(get_simplifier(method)(tile, n).indices) == n
     assert len(get_simplifier(method)(tile, 1).indices) == 1
+
+
+@pytest.mark.parametrize("method", CLASSIC)
+def test_exact_duplicates_are_each_kept_once(method):
+    """Every point twice, or one point repeated: the budget is met by distinct source points, all core."""
+    base = make_tile(2_000)
+    doubled = Tile(np.concatenate([base.xyz, base.xyz]), np.concatenate([base.core, base.core]), base.centre, 3)
+    same = Tile(np.zeros((500, 3)), np.ones(500, dtype=bool), base.centre, 3)
+    for tile in (doubled, same):
+        for budget in (tile.core_count // 10, tile.core_count * 3 // 4, tile.core_count):
+            indices = get_simplifier(method)(tile, budget).indices
+            assert len(np.unique(indices)) == budget and tile.core[indices].all()
