@@ -35,10 +35,10 @@ def degrees_reason(header: laspy.LasHeader) -> str | None:
     """Why the coordinates are in degrees (a geographic CRS, or no CRS but lon/lat-looking values on a
     sub-metre-in-degrees grid), or None. Tile sizes, halos and neighbourhoods are in metres."""
     crs = parsed_crs(header)
-    if crs is not None:
-        return f"its CRS {crs.name!r} is geographic (coordinates in degrees)" if crs.is_geographic else None
     mins, maxs = np.asarray(header.mins, float), np.asarray(header.maxs, float)
     in_range = mins[0] >= -180 and maxs[0] <= 180 and mins[1] >= -90 and maxs[1] <= 90
+    if crs is not None:  # a geographic label on values no degree can take (lone-star: "WGS 84", UTM-sized) is wrong
+        return f"its CRS {crs.name!r} is geographic (coordinates in degrees)" if crs.is_geographic and in_range else None
     if in_range and max(header.scales[0], header.scales[1]) <= DEGREE_SCALE:
         return (f"it has no CRS and its coordinates look like degrees (x {mins[0]:g}..{maxs[0]:g}, "
                 f"y {mins[1]:g}..{maxs[1]:g}, scale {header.scales[0]:g})")

@@ -83,6 +83,8 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     output = Path(output) if output is not None else default_output(scan.paths[0])
     check_output(output, overwrite)
     check_run(scan, config.allow_geographic, Path(scratch or output.parent))
+    if target_count(config.ratio, scan.point_count) == 0:
+        raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {scan.point_count} points")
     remove_stale_temporaries(output)
     work = WorkDir.for_run(output, Path(scratch) if scratch else None, scan.paths, config)
     try:

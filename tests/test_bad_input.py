@@ -259,7 +259,8 @@ def test_full_disk_at_output(tmp_path, suffix):
                               "--scratch", str(tmp_path), *FAST)
     assert_one_line_error(result, str(output), "No space left")
     assert result.stdout == ""  # the mount is empty afterwards
-    assert not list(tmp_path.glob(".out*"))
+    assert all(".work-" in p.name for p in tmp_path.glob(".out*"))  # only the finished tiles, kept to resume
+    assert "re-run the same command to resume" in result.stderr
 
 
 def test_full_disk_at_scratch(tmp_path):
