@@ -110,8 +110,6 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, cl
     clock.lap("read and bucket")
     counts = np.array([t.count for t in plan.tiles], dtype=np.int64)
     target = target_count(config.ratio, int(counts.sum()))
-    if target == 0:
-        raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {counts.sum()} points")
     budgets = tile_budgets(counts, config.ratio)
     jobs = make_jobs(work, plan, slices, budgets, config)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]

@@ -9,15 +9,15 @@ from __future__ import annotations
 
 import hashlib
 import json
-import os
 import shutil
 from dataclasses import asdict
 from importlib.metadata import version
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 
+from pipeline.atomic import atomic_output
 from pipeline.config import RunConfig
 
 MANIFEST = "manifest.json"
@@ -33,11 +33,10 @@ def run_key(inputs: Sequence[Path], config: RunConfig) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def write_atomically(path: Path, write) -> None:
+def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
     """Call write(temporary_path) and rename the result to `path`, so `path` is complete or absent."""
-    temporary = path.parent / f".{path.name}.tmp-{os.getpid()}"
-    write(temporary)
-    os.replace(temporary, path)
+    with atomic_output(path) as temporary:
+        write(temporary)
 
 
 class WorkDir:
