@@ -28,9 +28,11 @@ def evaluate(vertices: np.ndarray, ratios: list[float], weights: Path) -> dict[t
     xyz = vertices - vertices.mean(axis=0)
     tile = Tile(xyz, np.ones(len(xyz), dtype=bool), np.zeros(3), seed=0)
     largest = int(round(max(ratios) * len(xyz)))
-    orders = {"fps": get_simplifier("fps")(tile, largest),
-              "learned (exact latent FPS)": learned_simplify(tile, largest, weights, exact=True),
-              "learned (8-d latent FPS)": learned_simplify(tile, largest, weights)}
+    orders = {"fps": get_simplifier("fps")(tile, largest)}
+    for exact, selector in ((True, "exact"), (False, "8-d")):
+        for refine, moved in ((True, "refined"), (False, "unmoved")):
+            orders[f"learned ({selector} latent FPS, {moved})"] = learned_simplify(tile, largest, weights, exact=exact,
+                                                                                 refine=refine)
     reference = point_features(xyz)
     scores = {}
     for method, selection in orders.items():
@@ -59,7 +61,7 @@ def main() -> None:
     print("| ratio | method | CD | CE | RE |")
     print("| ---: | --- | ---: | ---: | ---: |")
     for ratio in ratios:
-        for method in ("fps", "learned (exact latent FPS)", "learned (8-d latent FPS)"):
+        for method in sorted({method for method, _ in totals}, key=lambda m: (m != "fps", m)):
             cd, ce, re = np.mean(totals[(method, ratio)], axis=0)
             print(f"| {ratio} | {method} | {cd:.5g} | {ce:.5f} | {re:.5f} |")
 

@@ -42,8 +42,9 @@ def reduced_latent_order(features: np.ndarray, core: np.ndarray, budget: int, se
 
 @torch.no_grad()
 def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS, exact: bool = False,
-                     graph: np.ndarray | None = None) -> Selection:
-    """Latent FPS over core+halo until `budget` core picks, then each pick refined over its neighbourhood.
+                     graph: np.ndarray | None = None, refine: bool = False) -> Selection:
+    """Latent FPS over core+halo until `budget` core picks, then (if `refine`) each pick moved by the
+    attention refinement over its neighbourhood; without it the picks keep their measured positions.
 
     The input is normalised exactly as in training (centre, unit ball); refined positions are mapped back.
     `graph` ((n, k) rows, each point first; mesh mode passes mesh adjacency) replaces the kNN graph in the
@@ -67,5 +68,7 @@ def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS, exact: bo
         picks = order[core[order]][:budget]
     else:
         picks = torch.from_numpy(reduced_latent_order(features.numpy(), tile.core, budget, tile.seed))
+    if not refine:
+        return Selection.of(tile, picks.numpy())
     refined = model.refiner(xyz, features, picks, neighbours).double() * scale + centre
     return Selection(picks.numpy().astype(np.int64), refined.numpy())

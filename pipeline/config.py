@@ -29,6 +29,7 @@ class RunConfig:
     seam_tolerance: float = 0.01
     workers: int = 2
     memory_limit: str = "2GB"
+    cache_memory: str = "32MB"  # each process's cache of stored row chunks (tiles re-read their neighbours')
     chunk_points: int = 1_000_000
     seed: int = 0
     allow_geographic: bool = False  # run on coordinates in degrees (tile sizes and distances become degrees)
@@ -46,15 +47,18 @@ class RunConfig:
         for name in ("max_tile_points", "workers", "chunk_points"):
             if int(getattr(self, name)) < 1:
                 raise PipelineError(f"{name.replace('_', '-')} must be at least 1, got {getattr(self, name)!r}")
-        parse_size(self.memory_limit)
+        parse_size(self.memory_limit, "--memory-limit")
+        if parse_size(self.cache_memory, "cache-memory") >= parse_size(self.memory_limit, "--memory-limit"):
+            raise PipelineError(f"cache-memory must be below --memory-limit, got {self.cache_memory!r} "
+                                f"with {self.memory_limit!r}")
         return self
 
 
-def parse_size(text: str) -> int:
+def parse_size(text: str, option: str = "--memory-limit") -> int:
     """Bytes in a size such as '2GB', '512MiB' or '1500000000' (what Dask's memory_limit accepts)."""
     match = _SIZE.match(str(text))
     if not match:
-        raise PipelineError(f"--memory-limit must look like 2GB or 512MiB, got {text!r}")
+        raise PipelineError(f"{option} must look like 2GB or 512MiB, got {text!r}")
     return int(float(match.group(1)) * _UNITS[(match.group(2) or "b").lower()])
 
 

@@ -16,6 +16,7 @@ import trimesh
 
 from model import Tile, get_simplifier
 from model.meshes import MESH_SUFFIXES, load_mesh, mesh_graph, mesh_name
+from model.registry import LEARNED
 from model.selection import kept_count
 from pipeline.atomic import atomic_output
 from pipeline.config import RunConfig
@@ -97,11 +98,12 @@ def simplify_vertices(vertices: np.ndarray, faces: np.ndarray, method: str, coun
     """
     centre = vertices.mean(axis=0)
     tile = Tile(vertices - centre, np.ones(len(vertices), dtype=bool), centre, seed)
-    if method == "learned":
+    if method in LEARNED:
         from model.learned import learned_simplify
         from model.network import GRAPH_NEIGHBOURS
 
-        selection = learned_simplify(tile, count, graph=mesh_graph(tile.xyz, faces, GRAPH_NEIGHBOURS))
+        selection = learned_simplify(tile, count, graph=mesh_graph(tile.xyz, faces, GRAPH_NEIGHBOURS),
+                                     refine=method == "learned-refined")
     else:
         selection = get_simplifier(method)(tile, count)
     return selection.xyz + centre

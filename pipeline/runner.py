@@ -177,13 +177,13 @@ def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets:
             continue
         reserve = min(tile.count - budget, max(RESERVE_MIN, int(np.ceil(RESERVE_SHARE * budget))))
         jobs.append(TileJob(str(work.store_path), str(work.tile_path(tile_id)), tile_id, tuple(slices[tile_id]),
-                            config.overlap, piece_cache_bytes(config), budget, reserve, config.method, config.seed))
+                            config.overlap, chunk_cache_bytes(config), budget, reserve, config.method, config.seed))
     return jobs
 
 
-def piece_cache_bytes(config: RunConfig) -> int:
-    """Memory each process may spend caching stored pieces: a quarter of the per-worker limit."""
-    return parse_size(config.memory_limit) // 4
+def chunk_cache_bytes(config: RunConfig) -> int:
+    """Memory each process may spend caching stored row chunks (`cache_memory`, part of its memory limit)."""
+    return parse_size(config.cache_memory, "cache-memory")
 
 
 def _load_result(job: TileJob) -> tuple[np.ndarray, np.ndarray]:

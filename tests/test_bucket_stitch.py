@@ -5,6 +5,7 @@ from scipy.spatial import cKDTree
 from tiling.bucket import bucket_by_cell, row_ranges
 from tiling.plan import DensityGrid, plan_tiles
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
+import tiling.store as store_module
 from tiling.store import Slice, TileStore
 
 RECORD = np.dtype([("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("intensity", "<u2")])
@@ -55,6 +56,28 @@ def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path):
             & (xyz[:, 1] < y1 + overlap)
         assert set(np.flatnonzero(near)) == set(stored.index[seen].tolist())  # the whole halo, nothing more
     assert (seen_core == 1).all()
+
+
+def test_chunk_cache_returns_the_same_rows_within_its_budget(tmp_path, monkeypatch):
+    monkeypatch.setattr(store_module, "ROW_CHUNK", 1_000)  # slices then span several chunks
+    monkeypatch.setattr(store_module, "CHUNKS", store_module.ChunkCache())
+    store = TileStore.create(tmp_path / "t.zarr", RECORD, {})
+    pieces, _ = scan_pieces(12_000, 6_000)
+    for number, (first, records, _) in enumerate(pieces):
+        store.write_piece(number, store_module.encode_rows(records, np.arange(first, first + len(records))))
+    rng = np.random.default_rng(3)
+    starts = rng.integers(0, 6_000, 20)
+    slices = [Slice(int(i % 2), int(a), int(min(a + rng.integers(0, 2_500), 6_000))) for i, a in enumerate(starts)]
+    row_bytes = RECORD.itemsize + store_module.TAIL
+    budget = 4_000 * row_bytes  # four chunks: the most a slice of under 2,500 rows spans
+    cached, direct = store.load(slices, budget), store.load(slices, 0)
+    np.testing.assert_array_equal(cached.index, direct.index)
+    np.testing.assert_array_equal(cached.index, np.concatenate([np.arange(s.start, s.stop) + 6_000 * s.piece
+                                                                for s in slices]))
+    assert store_module.CHUNKS._bytes <= budget
+    reads = store_module.CHUNKS.reads
+    store.load(slices[-1:], budget)
+    assert store_module.CHUNKS.reads == reads  # the last slice's chunks are still cached
 
 
 def test_row_ranges_merge_adjacent_and_skip_empty():
