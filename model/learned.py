@@ -34,9 +34,10 @@ def reduced_latent_order(features: np.ndarray, core: np.ndarray, budget: int, se
     0.08 s on the same tile, keeping 93 % of the feature variance. The paper's FPS is over all 64
     dimensions: `exact=True` in learned_simplify keeps that.
     """
-    centred = features - features.mean(axis=0)
-    _, _, axes = np.linalg.svd(centred[:: max(1, len(centred) // PCA_SAMPLE)], full_matrices=False)
-    reduced = np.ascontiguousarray(centred @ axes[:REDUCED_DIMS].T, dtype=np.float32)
+    mean = features.mean(axis=0)
+    _, _, axes = np.linalg.svd(features[:: max(1, len(features) // PCA_SAMPLE)] - mean, full_matrices=False)
+    top = axes[:REDUCED_DIMS].T
+    reduced = np.ascontiguousarray(features @ top - mean @ top, dtype=np.float32)  # no centred (n, 64) copy
     return fps_simplify(Tile(reduced, core, np.zeros(reduced.shape[1]), seed), budget).indices
 
 
@@ -59,7 +60,7 @@ def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS, exact: bo
     xyz = normalised.float()
     neighbours = knn_graph(xyz.numpy())
     adjacency = neighbours if graph is None else torch.from_numpy(np.ascontiguousarray(graph, dtype=np.int64))
-    features = model.projector(xyz, mean_operator(adjacency, len(xyz)))
+    features = model.projector.infer(xyz, mean_operator(adjacency, len(xyz)))
     if exact:
         core = torch.from_numpy(tile.core)
         core_index = np.flatnonzero(tile.core)

@@ -146,3 +146,18 @@ def test_folding_batchnorm_keeps_the_projector_outputs(cloud):
         after = projector(xyz, mean_operator(neighbours, len(xyz)))
     assert len(projector.pointwise) == 6
     assert torch.allclose(before, after, atol=1e-5)
+
+
+def test_blockwise_inference_matches_forward(cloud, monkeypatch):
+    import model.network as network
+
+    xyz, neighbours = cloud
+    projector = Projector()
+    projector.train()(xyz, mean_operator(neighbours, len(xyz)))
+    projector.eval().fold_batchnorm()
+    monkeypatch.setattr(network, "INFERENCE_ROWS", 37)  # several blocks and a short last one
+    with torch.no_grad():
+        whole = projector(xyz, mean_operator(neighbours, len(xyz)))
+    blocks = projector.infer(xyz, mean_operator(neighbours, len(xyz)))
+    assert len(xyz) % 37 and len(xyz) > 2 * 37
+    assert torch.allclose(whole, blocks, atol=1e-5)
