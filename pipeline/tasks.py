@@ -5,8 +5,6 @@ local or remote cluster can run it, in any order, with the same result.
 """
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,11 +17,6 @@ from pipeline.workdir import WorkDir, save_npz, write_atomically
 from tiling.bucket import bucket_by_cell
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, TileStore
-
-
-_LIBC = ctypes.CDLL(ctypes.util.find_library("c")) if ctypes.util.find_library("c") else None
-if _LIBC is not None and not hasattr(_LIBC, "malloc_trim"):  # musl, macOS: no malloc_trim
-    _LIBC = None
 
 
 @dataclass(frozen=True)
@@ -63,17 +56,6 @@ def bucket_piece(piece: Piece, scan: Scan, grid: DensityGrid, work_path: str) ->
     return buckets.cells, buckets.starts
 
 
-def release_freed_memory() -> None:
-    """Hand the heap's free pages back to the system after a tile (glibc's malloc_trim; a no-op elsewhere).
-
-    A tile's tensors come and go in sizes that differ tile to tile, and glibc kept the freed pages:
-    learned's peak RSS grew with the scan (4M: 1.55 GB, 30M: 1.84 GB). One trim per tile costs
-    about a millisecond; Dask's MALLOC_TRIM_THRESHOLD_ (a trim on every free) made runs 1.5x slower.
-    """
-    if _LIBC is not None:
-        _LIBC.malloc_trim(0)
-
-
 def tile_seed(run_seed: int, tile_id: int) -> int:
     """A tile's own seed: fixed by the run seed and the tile id, whatever worker runs it."""
     return int(np.random.SeedSequence([run_seed, tile_id]).generate_state(1)[0])
@@ -97,5 +79,4 @@ def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     selection = get_simplifier(job.method)(tile, min(job.budget + job.reserve, tile.core_count))
     write_atomically(Path(job.result_path),
                      lambda tmp: save_npz(tmp, rows=seen[selection.indices], xyz=selection.xyz + centre))
-    release_freed_memory()
     return TileOutcome(job.tile_id, len(xyz), len(selection.indices), time.perf_counter() - started)
