@@ -12,6 +12,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 CHUNK_POINTS = 200_000  # points per batch of kNN results and covariances: about 80 MB of float64 offsets at k=16
+QUERY_POINTS = 32_768  # points per kd-tree query: its float64 distances and indices are temporaries
 NEAR_DOUBLE = 1e-6  # |r| above 1 - this means a nearly repeated eigenvalue: LAPACK instead of the closed form
 ROUND_OFF = 1e-12  # eigenvalues below this share of the trace are solver error (~1e-14 measured): exactly 0
 
@@ -64,8 +65,8 @@ def knn(xyz: np.ndarray, k: int = 16) -> Neighbours:
         return Neighbours(indices, sq_dist)
     tree = KDTree(xyz)
     order = morton_order(xyz)
-    for start in range(0, n, CHUNK_POINTS):
-        rows = order[start : start + CHUNK_POINTS]
+    for start in range(0, n, QUERY_POINTS):
+        rows = order[start : start + QUERY_POINTS]
         dist, idx = tree.query(xyz[rows], k, sqr_dists=True)
         indices[rows] = idx.reshape(len(rows), k)
         sq_dist[rows] = dist.reshape(len(rows), k)

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from model.baselines import fps_simplify
-from model.network import LearnedSimplifier, knn_graph, latent_fps, mean_operator, normalise
+from model.network import LearnedSimplifier, knn_graph, latent_fps, normalise
 from model.selection import Selection, Tile
 
 WEIGHTS = Path(__file__).resolve().parent / "weights" / "tosca.pt"
@@ -60,7 +60,7 @@ def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS, exact: bo
     xyz = normalised.float()
     neighbours = knn_graph(xyz.numpy())
     adjacency = neighbours if graph is None else torch.from_numpy(np.ascontiguousarray(graph, dtype=np.int64))
-    features = model.projector.infer(xyz, mean_operator(adjacency, len(xyz)))
+    features = model.projector.infer(xyz, adjacency)
     if exact:
         core = torch.from_numpy(tile.core)
         core_index = np.flatnonzero(tile.core)

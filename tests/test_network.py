@@ -158,6 +158,6 @@ def test_blockwise_inference_matches_forward(cloud, monkeypatch):
     monkeypatch.setattr(network, "INFERENCE_ROWS", 37)  # several blocks and a short last one
     with torch.no_grad():
         whole = projector(xyz, mean_operator(neighbours, len(xyz)))
-    blocks = projector.infer(xyz, mean_operator(neighbours, len(xyz)))
+    blocks = projector.infer(xyz, neighbours)
     assert len(xyz) % 37 and len(xyz) > 2 * 37
     assert torch.allclose(whole, blocks, atol=1e-5)
