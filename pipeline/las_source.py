@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Iterator
 
 import laspy
+import lazrs
 import numpy as np
 
 from pipeline.errors import PipelineError, is_fatal_signal
@@ -24,6 +25,7 @@ def describe_failure(path: Path, exc: BaseException) -> PipelineError:
 
 
 VERSION_MINOR_OFFSET = 25  # header byte holding the LAS minor version
+VARIABLE_CHUNKS = 2**32 - 1  # laszip's chunk size when each chunk has its own point count (COPC writes these)
 
 
 class Las10AsLas11(io.RawIOBase):
@@ -118,8 +120,11 @@ class LasSource:
         """Raw point records [start, start+count) in laspy's structured dtype (LAZ seeks by chunk table)."""
         try:
             with native_panics_silenced(), open_las(self.path) as reader:
-                reader.seek(start)
-                records = reader.read_points(count).array
+                if variable_chunks(reader.header):
+                    records = read_by_chunk_table(self.path, reader.header, start, count)
+                else:
+                    reader.seek(start)
+                    records = reader.read_points(count).array
         except BaseException as exc:  # lazrs raises PanicException, a BaseException
             if is_fatal_signal(exc):
                 raise
@@ -128,3 +133,39 @@ class LasSource:
             raise PipelineError(f"{self.path}: header says {self.point_count} points but the data ends before "
                                 f"point {start + count} (truncated file?)")
         return records
+
+
+def laszip_record(header: laspy.LasHeader) -> bytes | None:
+    """The laszip VLR's payload of a LAZ file's header; None for uncompressed LAS."""
+    found = [vlr for vlr in header.vlrs if type(vlr).__name__ == "LasZipVlr"]
+    return found[0].record_data if found else None
+
+
+def variable_chunks(header: laspy.LasHeader) -> bool:
+    """Whether a LAZ file's chunks each hold their own number of points (COPC always, some writers too)."""
+    laszip = laszip_record(header)
+    return laszip is not None and lazrs.LazVlr(laszip).chunk_size() == VARIABLE_CHUNKS
+
+
+def read_by_chunk_table(path: Path, header: laspy.LasHeader, start: int, count: int) -> np.ndarray:
+    """Records [start, start+count) of a variable-chunk LAZ file, decoding only the chunks that hold them.
+
+    lazrs's seek assumes equal chunks: on lone-star.copc.laz it returned other points (or failed to fill
+    its buffer) from any seek past the first chunk, so the chunk table is read and used here instead.
+    """
+    laszip = laszip_record(header)
+    with open(path, "rb") as source:
+        source.seek(header.offset_to_point_data)
+        table = lazrs.read_chunk_table(source, lazrs.LazVlr(laszip))
+        points_before = np.concatenate([[0], np.cumsum([points for points, _ in table])])
+        byte_at = source.tell() + np.concatenate([[0], np.cumsum([size for _, size in table])])
+        first = int(np.searchsorted(points_before, start, side="right")) - 1
+        last = min(int(np.searchsorted(points_before, start + count, side="left")), len(table))
+        source.seek(int(byte_at[first]))
+        compressed = source.read(int(byte_at[last] - byte_at[first]))
+    dtype = header.point_format.dtype()
+    decoded = bytearray(int(points_before[last] - points_before[first]) * dtype.itemsize)
+    lazrs.decompress_points_with_chunk_table(compressed, laszip, decoded, table[first:last],
+                                             lazrs.DecompressionSelection(lazrs.SELECTIVE_DECOMPRESS_ALL))
+    skip = start - int(points_before[first])
+    return np.frombuffer(decoded, dtype=dtype)[skip:skip + count].copy()
