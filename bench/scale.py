@@ -1,7 +1,7 @@
 """Scaling of `pipeline run` with scan size and workers: wall time, points/s and peak RSS of the tree.
 
     python bench/scale.py [--sizes 1M,4M,16M,30M] [--methods learned,fps] [--workers 2] [--ratio 0.1]
-                          [--one-worker-size 4M] [--data DIR]
+                          [--one-worker-size 16M] [--data DIR]
 
 Makes synthetic street scans with the project's simulator (streamed to LAZ in 500k-point chunks,
 never whole in memory; kept in --data between runs), runs each method on each, then the one-worker
@@ -68,7 +68,7 @@ def main() -> None:
     parser.add_argument("--methods", default="learned,fps")
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--ratio", type=float, default=0.1)
-    parser.add_argument("--one-worker-size", default="4M", help="size of the one-worker run for the speed-up")
+    parser.add_argument("--one-worker-size", default="16M", help="size of the one-worker run for the speed-up")
     parser.add_argument("--data", type=Path, default=Path(tempfile.gettempdir()) / "lidar-simplify-scale")
     args = parser.parse_args()
     sizes = [parse_count(s) for s in args.sizes.split(",")]

@@ -55,6 +55,7 @@ def jobs_from_folder(folder: Path, out_dir: Path, settings: dict[str, Any]) -> l
     files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SCAN_SUFFIXES)
     if not files:
         raise PipelineError(f"{folder}: no .las, .laz or .ply files")
+    settings = dict(settings)  # the caller's flags stay as given
     config = build_config(settings.pop("config", None), **settings)
     return [BatchJob((path,), out_dir / default_output(path).name, config) for path in files]
 

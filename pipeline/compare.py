@@ -2,8 +2,9 @@
 against the scan, and write a Markdown table, JSON, a plot per metric and a picture of one region.
 
 A method is a name mapped to a producer, a callable that writes the simplified cloud of an input at a
-ratio; the tile simplifiers all go through the normal pipeline. A method outside the pipeline (QEM on
-a mesh, say) is one more entry in PRODUCERS.
+ratio; the tile simplifiers all go through the normal pipeline, every run on one Dask cluster (started
+once: its workers keep torch and the model loaded). A method outside the pipeline (QEM on a mesh,
+say) is one more entry in PRODUCERS.
 """
 from __future__ import annotations
 
@@ -13,15 +14,18 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+from dask.distributed import Client
 
-import pipeline
 from model.geometry import point_features
 from model.registry import METHODS
+from pipeline.config import build_config
 from pipeline.errors import PipelineError
 from pipeline.evaluate import (DEFAULT_SAMPLE, METRIC_COLUMNS, Reference, Score, markdown_table, metric_cells,
                                prepare_reference, reference_json, sample_note, score, score_json)
 from pipeline.plots import Panel, metric_plot, region_view
+from pipeline.execute import cluster
 from pipeline.points import Cells, covering_grid, load_xyz
+from pipeline.runner import run_scan
 
 REGION_POINTS = 20_000  # reference points in the pictured cell, on average over the grid: a few buildings' worth
 
@@ -34,14 +38,14 @@ class RunOptions:
     seed: int = 0
 
 
-Producer = Callable[[Path, Path, float, RunOptions], None]
+Producer = Callable[[Path, Path, float, RunOptions, Client], None]
 
 
 def through_pipeline(method: str) -> Producer:
-    """A producer running `pipeline.run` with one of the tile simplifiers."""
-    def produce(source: Path, output: Path, ratio: float, options: RunOptions) -> None:
-        pipeline.run(source, output, ratio=ratio, method=method, workers=options.workers, seed=options.seed,
-                     overwrite=True)
+    """A producer running the pipeline with one of the tile simplifiers on the given cluster."""
+    def produce(source: Path, output: Path, ratio: float, options: RunOptions, client: Client) -> None:
+        config = build_config(ratio=ratio, method=method, workers=options.workers, seed=options.seed)
+        run_scan([source], output, config, overwrite=True, show_progress=False, client=client)
 
     return produce
 
@@ -90,11 +94,12 @@ def compare(source: Path, ratios: Sequence[float], methods: Sequence[str], out_d
     runs.mkdir(parents=True, exist_ok=True)
     reference = prepare_reference(source, sample, options.seed)
     entries = []
-    for method in methods:
-        for ratio in ratios:
-            output = runs / f"{method}-{ratio:g}.laz"
-            PRODUCERS[method](source, output, ratio, options)
-            entries.append(Entry(method, ratio, score(reference, output)))
+    with cluster(options.workers, build_config().memory_limit, None) as client:
+        for method in methods:
+            for ratio in ratios:
+                output = runs / f"{method}-{ratio:g}.laz"
+                PRODUCERS[method](source, output, ratio, options, client)
+                entries.append(Entry(method, ratio, score(reference, output)))
     return [write_markdown(reference, entries, out_dir), write_json(reference, entries, out_dir),
             *write_metric_plots(entries, out_dir), write_region(reference, entries, methods, ratios, out_dir)]
 

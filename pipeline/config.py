@@ -30,7 +30,7 @@ class RunConfig:
     workers: int = 2
     memory_limit: str = "2GB"
     cache_memory: str = "32MB"  # each process's cache of stored row chunks (tiles re-read their neighbours')
-    chunk_points: int = 1_000_000
+    chunk_points: int = 500_000  # points per bucketing piece: one piece per worker in memory at a time
     seed: int = 0
     allow_geographic: bool = False  # run on coordinates in degrees (tile sizes and distances become degrees)
 

@@ -63,7 +63,9 @@ def check_output(output: Path, overwrite: bool, suffixes: Sequence[str] = OUTPUT
     if output.exists() and not overwrite:
         raise PipelineError(f"{output}: already exists (pass --overwrite to replace it)")
     if not output.parent.is_dir():
-        raise PipelineError(f"{output.parent}: output folder does not exist")
+        problem = "not a folder, so it cannot hold the output" if output.parent.exists() else \
+            "output folder does not exist"
+        raise PipelineError(f"{output.parent}: {problem}")
     if not os.access(output.parent, os.W_OK):
         raise PipelineError(f"{output.parent}: output folder is not writable")
 

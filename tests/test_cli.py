@@ -104,6 +104,8 @@ def test_unknown_output_type_and_unwritable_folder(tmp_path):
     assert_one_line_error(cli("run", str(source), "--ratio", "0.1", "-o", str(tmp_path / "o.txt")), "unsupported")
     assert_one_line_error(cli("run", str(source), "--ratio", "0.1", "-o", str(tmp_path / "no" / "o.las")),
                           "does not exist")
+    assert_one_line_error(cli("run", str(source), "--ratio", "0.1", "-o", str(source / "o.las")),
+                          "not a folder, so it cannot hold the output")
 
 
 def test_config_preset_and_flags(tmp_path):
