@@ -91,17 +91,29 @@ class Projector(nn.Module):
         forward keeps about six, and a whole-tile sparse product allocates twice its output: a
         250k-point tile's transient went from about 300 MB to 120 MB, and with it the pipeline's peak.
         """
-        features = torch.empty(len(xyz), FEATURES)
-        for rows in _blocks(len(xyz)):
-            features[rows] = self.pointwise(xyz[rows])
+        features = self.pointwise_features(xyz)
         result = torch.empty_like(features)
-        for rows in _blocks(len(xyz)):
-            aggregated = mean_operator(neighbours[rows], len(xyz)) @ features
-            result[rows] = torch.relu(self.centre(features[rows]) + self.neighbour(aggregated))
+        for rows in row_blocks(len(xyz)):
+            result[rows] = self.aggregate(features, neighbours[rows], rows)
         return result
 
+    @torch.no_grad()
+    def pointwise_features(self, xyz: torch.Tensor) -> torch.Tensor:
+        """The (n, 64) output of the point-wise layers, computed in row blocks."""
+        features = torch.empty(len(xyz), FEATURES)
+        for rows in row_blocks(len(xyz)):
+            features[rows] = self.pointwise(xyz[rows])
+        return features
 
-def _blocks(count: int) -> list[slice]:
+    @torch.no_grad()
+    def aggregate(self, features: torch.Tensor, neighbours: torch.Tensor, rows: slice | torch.Tensor) -> torch.Tensor:
+        """The GNN layer's output for `rows` (a block or any index), given their graph rows `neighbours`."""
+        means = mean_operator(neighbours, len(features)) @ features
+        return torch.relu(self.centre(features[rows]) + self.neighbour(means))
+
+
+def row_blocks(count: int) -> list[slice]:
+    """Consecutive slices of INFERENCE_ROWS rows covering `count` rows."""
     return [slice(start, start + INFERENCE_ROWS) for start in range(0, count, INFERENCE_ROWS)]
 
 
