@@ -40,11 +40,11 @@ def reduced_latent_order(feature_rows: Callable[[slice | torch.Tensor], torch.Te
     """
     sampled = feature_rows(torch.arange(0, count, max(1, count // PCA_SAMPLE)))
     centre = sampled.mean(dim=0)
-    top = torch.linalg.svd(sampled - centre, full_matrices=False).Vh[:REDUCED_DIMS].T
-    reduced = torch.empty(count, REDUCED_DIMS)
+    top = torch.linalg.svd(sampled - centre, full_matrices=False).Vh[:REDUCED_DIMS].T  # fewer for a tiny tile
+    reduced = torch.empty(count, top.shape[1])
     for rows in row_blocks(count):
         reduced[rows] = (feature_rows(rows) - centre) @ top
-    return fps_simplify(Tile(reduced.numpy(), core, np.zeros(REDUCED_DIMS), seed), budget).indices
+    return fps_simplify(Tile(reduced.numpy(), core, np.zeros(top.shape[1]), seed), budget).indices
 
 
 def exact_latent_order(features: torch.Tensor, tile: Tile, budget: int) -> np.ndarray:

@@ -14,7 +14,7 @@ def learned_simplify(tile: Tile, budget: int) -> Selection:
 
 
 def learned_refined_simplify(tile: Tile, budget: int) -> Selection:
-    """The paper's whole model: the same picks, moved by the attention refinement (CD 2-3x higher on
+    """The paper's whole model: the same picks, moved by the attention refinement (CD 1.5-3.2x higher on
     the TOSCA test split for the same CE; see the model card)."""
     from model.learned import learned_simplify as simplify
 

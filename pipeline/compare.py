@@ -22,8 +22,8 @@ from pipeline.config import build_config
 from pipeline.errors import PipelineError
 from pipeline.evaluate import (DEFAULT_SAMPLE, METRIC_COLUMNS, Reference, Score, markdown_table, metric_cells,
                                prepare_reference, reference_json, sample_note, score, score_json)
-from pipeline.plots import Panel, metric_plot, region_view
 from pipeline.execute import cluster
+from pipeline.plots import Panel, metric_plot, region_view
 from pipeline.points import Cells, covering_grid, load_xyz
 from pipeline.runner import run_scan
 
