@@ -161,6 +161,7 @@ def read_by_chunk_table(path: Path, header: laspy.LasHeader, start: int, count: 
         byte_at = source.tell() + np.concatenate([[0], np.cumsum([size for _, size in table])])
         first = int(np.searchsorted(points_before, start, side="right")) - 1
         last = min(int(np.searchsorted(points_before, start + count, side="left")), len(table))
+        first = min(first, last)  # past the table's last point (truncated): nothing, which read() reports
         source.seek(int(byte_at[first]))
         compressed = source.read(int(byte_at[last] - byte_at[first]))
     dtype = header.point_format.dtype()
