@@ -16,6 +16,8 @@ Conventions (lower is better for every metric; identical clouds score 0 on all):
 - SDM: model/sdm.py.
 Each cloud's features come from one kNN query on the cloud itself (model/geometry.py, k = 16), and each
 direction's nearest neighbours are queried once and shared by all metrics. Queries run in chunks.
+A sample of a big cloud can be scored on some points only: the others (a margin around the sample)
+serve as neighbours and nearest points, so points at the sample's edge are scored as in the whole cloud.
 """
 from __future__ import annotations
 
@@ -47,6 +49,10 @@ class Match:
     sq_dist: np.ndarray
     index: np.ndarray
 
+    def of(self, rows: np.ndarray) -> "Match":
+        """The matches of some query points only."""
+        return Match(self.sq_dist[rows], self.index[rows])
+
 
 def nearest(points: np.ndarray, queries: np.ndarray) -> Match:
     """The nearest of `points` to each query, queried in chunks so millions of queries fit in memory."""
@@ -76,7 +82,8 @@ def normal_consistency(a: np.ndarray, b: np.ndarray, normals_a: np.ndarray | Non
     """Mean over both directions of 1 - |cos| (1 - cos if `oriented`) between NN normals; PCA normals if not given."""
     normals_a = point_features(a).normals if normals_a is None else normals_a
     normals_b = point_features(b).normals if normals_b is None else normals_b
-    return _normal_consistency(normals_a, normals_b, nearest(b, a), nearest(a, b), oriented)
+    return (_directed_nc(normals_a, normals_b, nearest(b, a), oriented)
+            + _directed_nc(normals_b, normals_a, nearest(a, b), oriented)) / 2
 
 
 def feature_error(reference_values: np.ndarray, simplified_values: np.ndarray, index: np.ndarray) -> float:
@@ -84,17 +91,23 @@ def feature_error(reference_values: np.ndarray, simplified_values: np.ndarray, i
     return float(np.sqrt(np.mean(np.square(reference_values - simplified_values[index]))))
 
 
-def quality(reference: np.ndarray, simplified: np.ndarray, reference_features: PointFeatures | None = None) -> Quality:
-    """Every metric of `simplified` against `reference` (pass reference features to reuse them)."""
+def quality(reference: np.ndarray, simplified: np.ndarray, reference_features: PointFeatures | None = None,
+            reference_scored: np.ndarray | None = None, simplified_scored: np.ndarray | None = None) -> Quality:
+    """Every metric of `simplified` against `reference` (pass reference features to reuse them), over the
+    points each `*_scored` mask selects (all when None); the other points are neighbours and matches only."""
     ref = reference_features or point_features(reference)
     simp = point_features(simplified)
     forward, backward = nearest(simplified, reference), nearest(reference, simplified)
-    return Quality(chamfer=_chamfer(forward, backward),
-                   curvature_error=feature_error(ref.mean_curvature, simp.mean_curvature, forward.index),
-                   roughness_error=feature_error(ref.roughness, simp.roughness, forward.index),
-                   hausdorff=_hausdorff(forward, backward),
-                   normal_consistency=_normal_consistency(ref.normals, simp.normals, forward, backward),
-                   sdm=structural_distortion(ref, simp, forward.index, backward.index))
+    a = np.flatnonzero(reference_scored) if reference_scored is not None else np.arange(len(reference))
+    b = np.flatnonzero(simplified_scored) if simplified_scored is not None else np.arange(len(simplified))
+    fa, fb = forward.of(a), backward.of(b)
+    return Quality(chamfer=_chamfer(fa, fb),
+                   curvature_error=feature_error(ref.mean_curvature[a], simp.mean_curvature, fa.index),
+                   roughness_error=feature_error(ref.roughness[a], simp.roughness, fa.index),
+                   hausdorff=_hausdorff(fa, fb),
+                   normal_consistency=(_directed_nc(ref.normals[a], simp.normals, fa)
+                                       + _directed_nc(simp.normals[b], ref.normals, fb)) / 2,
+                   sdm=structural_distortion(ref, simp, forward.index, backward.index, a, b))
 
 
 def _chamfer(forward: Match, backward: Match) -> float:
@@ -105,19 +118,15 @@ def _hausdorff(forward: Match, backward: Match) -> float:
     return float(np.sqrt(max(forward.sq_dist.max(), backward.sq_dist.max())))
 
 
-def _normal_consistency(normals_a: np.ndarray, normals_b: np.ndarray, forward: Match, backward: Match,
-                        oriented: bool = False) -> float:
-    """`forward` matches each point of a in b, `backward` each point of b in a."""
-    def directed(normals: np.ndarray, other: np.ndarray, match: Match) -> float:
-        total = 0.0
-        for start in range(0, len(normals), CHUNK_POINTS):
-            stop = start + CHUNK_POINTS
-            cos = np.einsum("ij,ij->i", _unit(normals[start:stop]), _unit(other[match.index[start:stop]]))
-            cos = np.clip(cos, -1, 1)  # round-off can pass 1, and NC of twins must be 0, not -1e-17
-            total += float(np.sum(1 - (cos if oriented else np.abs(cos))))
-        return total / len(normals)
-
-    return (directed(normals_a, normals_b, forward) + directed(normals_b, normals_a, backward)) / 2
+def _directed_nc(normals: np.ndarray, other: np.ndarray, match: Match, oriented: bool = False) -> float:
+    """Mean of 1 - |cos| (1 - cos if oriented) between each query point's normal and its match's in `other`."""
+    total = 0.0
+    for start in range(0, len(normals), CHUNK_POINTS):
+        stop = start + CHUNK_POINTS
+        cos = np.einsum("ij,ij->i", _unit(normals[start:stop]), _unit(other[match.index[start:stop]]))
+        cos = np.clip(cos, -1, 1)  # round-off can pass 1, and NC of twins must be 0, not -1e-17
+        total += float(np.sum(1 - (cos if oriented else np.abs(cos))))
+    return total / len(normals)
 
 
 def _unit(vectors: np.ndarray) -> np.ndarray:

@@ -27,25 +27,30 @@ POOLING_EXPONENT = 3.0
 STABILISER = 1e-3  # c, in mean-curvature units ([0, 1/3]); keeps flat-vs-flat round-off from scoring
 
 
-def structural_distortion(a: PointFeatures, b: PointFeatures, a_to_b: np.ndarray, b_to_a: np.ndarray) -> float:
-    """SDM between two clouds from their features and each point's nearest-point index in the other cloud."""
-    return (directed_sdm(a, b.mean_curvature[a_to_b]) + directed_sdm(b, a.mean_curvature[b_to_a])) / 2
+def structural_distortion(a: PointFeatures, b: PointFeatures, a_to_b: np.ndarray, b_to_a: np.ndarray,
+                          a_scored: np.ndarray | None = None, b_scored: np.ndarray | None = None) -> float:
+    """SDM between two clouds from their features and each point's nearest-point index in the other cloud,
+    pooled over the scored point indices of each (all when None)."""
+    return (directed_sdm(a, b.mean_curvature[a_to_b], a_scored)
+            + directed_sdm(b, a.mean_curvature[b_to_a], b_scored)) / 2
 
 
-def directed_sdm(features: PointFeatures, other_at_nearest: np.ndarray) -> float:
-    """Pooled local distortion of one cloud, given the other cloud's mean curvature at each point's nearest point."""
+def directed_sdm(features: PointFeatures, other_at_nearest: np.ndarray, scored: np.ndarray | None = None) -> float:
+    """Pooled local distortion of one cloud (over its `scored` point indices), given the other cloud's mean
+    curvature at each point's nearest point."""
     nbrs, own = features.nbrs, features.mean_curvature.astype(np.float64)
     other_at_nearest = other_at_nearest.astype(np.float64)
     h = bandwidth(nbrs)
+    scored = np.arange(len(own)) if scored is None else scored
     pooled = 0.0
-    for start in range(0, len(own), CHUNK_POINTS):
-        rows = slice(start, start + CHUNK_POINTS)
+    for start in range(0, len(scored), CHUNK_POINTS):
+        rows = scored[start:start + CHUNK_POINTS]
         index = nbrs.indices[rows]
         weights = np.exp(-nbrs.sq_dist[rows].astype(np.float64) / h[rows, None])
         weights /= weights.sum(axis=1, keepdims=True)
         distortion = local_distortion(own[index], other_at_nearest[index], weights)
         pooled += float(np.sum(distortion**POOLING_EXPONENT))
-    return (pooled / max(len(own), 1)) ** (1 / POOLING_EXPONENT)
+    return (pooled / max(len(scored), 1)) ** (1 / POOLING_EXPONENT)
 
 
 def local_distortion(a: np.ndarray, b: np.ndarray, weights: np.ndarray) -> np.ndarray:

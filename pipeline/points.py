@@ -34,9 +34,14 @@ class Cells:
         ij = np.clip(ij, 0, np.array(self.shape) - 1)
         return ij[:, 0] * self.shape[1] + ij[:, 1]
 
-    def contains(self, xyz: np.ndarray) -> np.ndarray:
-        """Mask of the points inside the chosen cells."""
-        return np.isin(self.keys(xyz), self.chosen)
+    def contains(self, xyz: np.ndarray, margin: float = 0.0) -> np.ndarray:
+        """Mask of the points inside the chosen cells, or within `margin` (under a cell side, along x and
+        y) of one: the corners of a point's margin square then lie in every cell the square touches."""
+        inside = np.isin(self.keys(xyz), self.chosen)
+        for dx in (-margin, margin) if margin > 0 else ():
+            for dy in (-margin, margin):
+                inside |= np.isin(self.keys(xyz[:, :2] + (dx, dy)), self.chosen)
+        return inside
 
 
 def covering_grid(low: np.ndarray, high: np.ndarray, cells: int) -> Cells:
@@ -66,9 +71,9 @@ def xyz_chunks(path: Path) -> Iterator[np.ndarray]:
         yield scan.read(piece).xyz
 
 
-def load_xyz(path: Path, cells: Cells | None = None) -> np.ndarray:
-    """All coordinates of a file, or those inside `cells`."""
-    parts = [xyz if cells is None else xyz[cells.contains(xyz)] for xyz in xyz_chunks(path)]
+def load_xyz(path: Path, cells: Cells | None = None, margin: float = 0.0) -> np.ndarray:
+    """All coordinates of a file, or those inside `cells` (grown by `margin`)."""
+    parts = [xyz if cells is None else xyz[cells.contains(xyz, margin)] for xyz in xyz_chunks(path)]
     return np.concatenate(parts) if parts else np.empty((0, 3))
 
 

@@ -11,6 +11,7 @@ import pytest
 import zarr
 from click.testing import CliRunner
 
+import pipeline
 from pipeline.cli import cli
 from pipeline.compare import RunOptions, compare
 from pipeline.evaluate import METRIC_COLUMNS
@@ -72,6 +73,20 @@ def test_eval_sample_takes_whole_cells(scan, tmp_path):
     report = json.loads(run_cli("eval", str(scan), str(candidate), "--json", "--sample", "1000").output)
     assert report["reference_points"] == 5_000 and 1_000 <= report["evaluated_reference_points"] < 5_000
     assert report["sample_cells"] > 0 and report["candidates"][0]["evaluated_points"] < 2_500
+
+
+def test_sampled_scores_see_past_the_cell_borders(tmp_path):
+    # the sampled points are points of the whole scan, and with the margin they keep their nearest points,
+    # so a sampled maximum cannot pass the exact one (cropped to the cells alone it came to 1.9x)
+    source = tmp_path / "street.laz"
+    write_street_scan(source, n_points=20_000, seed=5)
+    candidate = tmp_path / "fps.laz"
+    pipeline.run(source, candidate, ratio=0.2, method="fps", workers=1)
+    exact, sampled = (json.loads(run_cli("eval", str(source), str(candidate), "--json", "--sample", n).output)
+                      for n in ("0", "5000"))
+    assert sampled["sample_cells"] > 0 and 5_000 <= sampled["evaluated_reference_points"] < 20_000
+    assert 0 < sampled["candidates"][0]["hausdorff"] <= exact["candidates"][0]["hausdorff"]
+    assert sampled["candidates"][0]["chamfer"] == pytest.approx(exact["candidates"][0]["chamfer"], rel=0.2)
 
 
 def test_eval_missing_file_is_one_line(scan, tmp_path):
