@@ -47,7 +47,6 @@ class RunConfig:
         for name in ("max_tile_points", "workers", "chunk_points"):
             if int(getattr(self, name)) < 1:
                 raise PipelineError(f"{name.replace('_', '-')} must be at least 1, got {getattr(self, name)!r}")
-        parse_size(self.memory_limit, "--memory-limit")
         if parse_size(self.cache_memory, "cache-memory") >= parse_size(self.memory_limit, "--memory-limit"):
             raise PipelineError(f"cache-memory must be below --memory-limit, got {self.cache_memory!r} "
                                 f"with {self.memory_limit!r}")

@@ -74,22 +74,24 @@ def sample_cells(path: Path, sample: int, seed: int) -> Cells | None:
 def prepare_reference(path: Path, sample: int = DEFAULT_SAMPLE, seed: int = 0) -> Reference:
     """Load the reference (or its sample cells), centre it and compute its features once for every candidate."""
     cells = sample_cells(path, sample, seed)
-    xyz = load_xyz(path, cells, sample_margin(cells))
-    scored = None if cells is None else cells.contains(xyz)
+    xyz, scored = load_sample(path, cells)
     centre = xyz.mean(axis=0)
     xyz = xyz - centre  # kd-trees and covariances on centred coordinates (DESIGN: traps)
     return Reference(path, point_count(path), cells, centre, xyz, point_features(xyz), scored)
 
 
-def sample_margin(cells: Cells | None) -> float:
-    """How far around the sample cells both clouds are loaded (0 without a sample)."""
-    return 0.0 if cells is None else SAMPLE_MARGIN * cells.side
+def load_sample(path: Path, cells: Cells | None) -> tuple[np.ndarray, np.ndarray | None]:
+    """A file's points on the sample cells grown by the margin, and the mask of those inside the cells
+    (all points and None without a sample)."""
+    if cells is None:
+        return load_xyz(path), None
+    xyz = load_xyz(path, cells, SAMPLE_MARGIN * cells.side)
+    return xyz, cells.contains(xyz)
 
 
 def score(reference: Reference, path: Path) -> Score:
     """Metrics of one candidate file against the prepared reference, on the same cells."""
-    xyz = load_xyz(path, reference.cells, sample_margin(reference.cells))
-    scored = None if reference.cells is None else reference.cells.contains(xyz)
+    xyz, scored = load_sample(path, reference.cells)
     evaluated = len(xyz) if scored is None else int(scored.sum())
     if evaluated == 0:
         raise PipelineError(f"{path}: no points where {reference.path} was evaluated")

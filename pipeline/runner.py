@@ -62,10 +62,10 @@ def check_output(output: Path, overwrite: bool, suffixes: Sequence[str] = OUTPUT
         raise PipelineError(f"{output}: unsupported output type (use {', '.join(suffixes)})")
     if output.exists() and not overwrite:
         raise PipelineError(f"{output}: already exists (pass --overwrite to replace it)")
+    if output.parent.exists() and not output.parent.is_dir():
+        raise PipelineError(f"{output.parent}: not a folder, so it cannot hold the output")
     if not output.parent.is_dir():
-        problem = "not a folder, so it cannot hold the output" if output.parent.exists() else \
-            "output folder does not exist"
-        raise PipelineError(f"{output.parent}: {problem}")
+        raise PipelineError(f"{output.parent}: output folder does not exist")
     if not os.access(output.parent, os.W_OK):
         raise PipelineError(f"{output.parent}: output folder is not writable")
 
