@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from model.baselines import fps_simplify, random_simplify, tcp_simplify, voxel_simplify
 from model.selection import Selection, Simplifier, Tile
+from model.stratified import stratified_simplify
 
 
 def learned_simplify(tile: Tile, budget: int) -> Selection:
@@ -26,6 +27,7 @@ _SIMPLIFIERS: dict[str, Simplifier] = {
     "voxel": voxel_simplify,
     "random": random_simplify,
     "tcp": tcp_simplify,
+    "stratified": stratified_simplify,
     "learned": learned_simplify,
     "learned-refined": learned_refined_simplify,
 }

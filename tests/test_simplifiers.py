@@ -4,7 +4,7 @@ import pytest
 
 from model import Tile, get_simplifier
 
-CLASSIC = ("fps", "voxel", "random")  # keep source positions; the learned method has its own tests
+CLASSIC = ("fps", "voxel", "random", "stratified")  # keep source positions; the learned method has its own tests
 
 
 def make_tile(n: int = 20_000, seed: int = 5) -> Tile:

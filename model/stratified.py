@@ -1,0 +1,108 @@
+"""Density-preserving stratified thinning with a coverage guarantee (`--method stratified`).
+
+Why: measured on airborne, terrestrial and simulated mobile scans (bench/quality.py), the curvature
+metrics (CE, RE, SDM) reward an output whose local density follows the scan's, as random sampling's
+does, while Chamfer and Hausdorff reward even coverage, as FPS's does. Random's weakness is its clumps
+and holes, FPS's is that it flattens the density pattern. This method takes each side's strength:
+
+1. fill: every core point has the same chance to be kept, and the picks are drawn by systematic
+   sampling along a Morton curve through the tile, so each run of 1/ratio consecutive points on the
+   curve keeps one: the density pattern of random sampling without its clumps;
+2. cover: points still farther than `COVER_SPACINGS` typical output spacings from every pick (holes in
+   sparse areas: far ranges, isolated objects, stray returns) are covered by farthest point sampling
+   among themselves, and the fill gives up as many picks, so the count stays exact.
+
+Picks come in priority order (fill picks in radical-inverse order along the curve, hole picks in FPS
+order, interleaved by rank), so a prefix is itself a spread-out, coarser result.
+"""
+from __future__ import annotations
+
+import numpy as np
+from pykdtree.kdtree import KDTree
+
+from model.baselines import fps_simplify
+from model.geometry import morton_order
+from model.selection import Selection, Tile, topped_up
+
+COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
+
+
+def stratified_simplify(tile: Tile, budget: int) -> Selection:
+    """`budget` core points: a stratified uniform fill, then the holes it leaves covered (see module doc)."""
+    budget = min(budget, tile.core_count)
+    if budget == 0:
+        return Selection.of(tile, np.empty(0, dtype=np.int64))
+    core = np.flatnonzero(tile.core)
+    curve = core[morton_order(tile.xyz[core])]  # core points along a Z-order curve
+    rng = np.random.default_rng(tile.seed)
+    phase = rng.random()
+    trial = systematic_picks(curve, budget, phase)
+    radius = COVER_SPACINGS * typical_spacing(tile.xyz[trial])
+    holes = len(hole_cover(tile.xyz, trial, core, radius))
+    fill = systematic_picks(curve, budget - holes, phase)
+    cover = hole_cover(tile.xyz, fill, np.setdiff1d(core, fill, assume_unique=True), radius)[:holes]
+    order = interleaved(fill[radical_inverse_order(len(fill))], cover)
+    return Selection.of(tile, topped_up(order, core, budget, rng))
+
+
+def systematic_picks(curve: np.ndarray, count: int, phase: float) -> np.ndarray:
+    """`count` of the points listed along a curve, one in each run of len/count consecutive ones, at a
+    fixed phase in [0, 1) of the run (systematic sampling): exact count, no two runs share a pick."""
+    if count <= 0:
+        return np.empty(0, dtype=np.int64)
+    positions = np.floor((np.arange(count) + phase) * (len(curve) / count)).astype(np.int64)
+    return curve[np.minimum(positions, len(curve) - 1)]
+
+
+def typical_spacing(points: np.ndarray) -> float:
+    """Median distance from each point to its nearest other point (0 for fewer than two points)."""
+    if len(points) < 2:
+        return 0.0
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    distance, _ = KDTree(points).query(points, k=2)
+    return float(np.median(distance[:, 1]))
+
+
+def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius: float) -> np.ndarray:
+    """Candidates, in FPS order, that cover every candidate farther than `radius` from the kept points:
+    FPS over those far candidates, cut at the shortest prefix that brings each within `radius` of a pick."""
+    if len(kept) == 0 or len(candidates) == 0 or radius <= 0:
+        return np.empty(0, dtype=np.int64)
+    far = candidates[nearest_distance(xyz[kept], xyz[candidates]) > radius]
+    if len(far) == 0:
+        return far.astype(np.int64)
+    local = Tile(xyz[far], np.ones(len(far), dtype=bool), np.zeros(3), seed=0)
+    order = far[fps_simplify(local, len(far)).indices]
+    low, high = 1, len(order)  # the whole order covers (each point is its own pick); find the shortest prefix
+    while low < high:
+        middle = (low + high) // 2
+        if nearest_distance(xyz[order[:middle]], xyz[far]).max() <= radius:
+            high = middle
+        else:
+            low = middle + 1
+    return order[:low]
+
+
+def nearest_distance(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """Distance from each query to the nearest of `points` (both (m, 3))."""
+    tree = KDTree(np.ascontiguousarray(points, dtype=np.float64))
+    distance, _ = tree.query(np.ascontiguousarray(queries, dtype=np.float64), k=1)
+    return distance
+
+
+def radical_inverse_order(count: int) -> np.ndarray:
+    """A permutation of range(count) by bit-reversed index: every prefix is spread evenly over the range."""
+    if count <= 1:
+        return np.arange(count, dtype=np.int64)
+    bits = int(np.ceil(np.log2(count)))
+    index = np.arange(count, dtype=np.uint64)
+    reversed_bits = np.zeros(count, dtype=np.uint64)
+    for bit in range(bits):
+        reversed_bits |= ((index >> np.uint64(bit)) & np.uint64(1)) << np.uint64(bits - 1 - bit)
+    return np.argsort(reversed_bits, kind="stable")
+
+
+def interleaved(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Two priority orders merged by relative rank (i / len), so any prefix holds each in proportion."""
+    rank = np.concatenate([np.arange(len(first)) / max(len(first), 1), np.arange(len(second)) / max(len(second), 1)])
+    return np.concatenate([first, second])[np.argsort(rank, kind="stable")]

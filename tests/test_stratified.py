@@ -1,0 +1,73 @@
+"""Stratified thinning: the scan's density pattern where it is dense, no hole where it is sparse."""
+import numpy as np
+from scipy.spatial import cKDTree
+
+from model import Tile, get_simplifier
+from model.stratified import hole_cover, radical_inverse_order, systematic_picks, typical_spacing
+
+
+def dense_beside_sparse(seed: int = 0) -> tuple[Tile, np.ndarray]:
+    """A 20 x 20 m plane sampled 100x denser on its left half than on its right: (tile, sparse mask)."""
+    rng = np.random.default_rng(seed)
+    dense = rng.uniform([0, 0], [10, 20], size=(40_000, 2))
+    sparse = rng.uniform([10, 0], [20, 20], size=(400, 2))
+    xy = np.concatenate([dense, sparse])
+    xyz = np.column_stack([xy, rng.normal(0, 0.005, len(xy))])
+    is_sparse = np.arange(len(xyz)) >= len(dense)
+    return Tile(xyz - xyz.mean(0), np.ones(len(xyz), bool), np.zeros(3), seed=4), is_sparse
+
+
+def test_dense_side_keeps_its_share_and_sparse_side_has_no_hole():
+    tile, is_sparse = dense_beside_sparse()
+    budget = round(0.05 * len(tile.xyz))
+    kept = get_simplifier("stratified")(tile, budget).indices
+    spacing = typical_spacing(tile.xyz[kept])
+    # every sparse point lies within two output spacings of a pick; random leaves most of them farther
+    gap = cKDTree(tile.xyz[kept]).query(tile.xyz[is_sparse])[0]
+    random_gap = cKDTree(tile.xyz[get_simplifier("random")(tile, budget).indices]).query(tile.xyz[is_sparse])[0]
+    assert gap.max() <= 2 * spacing * (1 + 1e-9) and (random_gap > 2 * spacing).mean() > 0.5
+    # the dense side still holds nearly all of its proportional share (random's pattern)
+    assert (~is_sparse[kept]).sum() > 0.85 * budget * (~is_sparse).mean()
+
+
+def test_covering_radius_close_to_fps_and_far_below_random():
+    tile, is_sparse = dense_beside_sparse(1)
+    budget = 1_000
+    gaps = {m: cKDTree(tile.xyz[get_simplifier(m)(tile, budget).indices]).query(tile.xyz)[0].max()
+            for m in ("stratified", "fps", "random")}
+    assert gaps["stratified"] < 0.5 * gaps["random"]
+    assert gaps["stratified"] < 3 * gaps["fps"]
+
+
+def test_systematic_picks_one_per_run_along_the_curve():
+    curve = np.arange(1_000)[::-1]
+    picks = systematic_picks(curve, 100, 0.5)
+    assert len(np.unique(picks)) == 100
+    np.testing.assert_array_equal(np.sort(picks // 10), np.arange(100))  # one in each run of 10
+
+
+def test_radical_inverse_prefixes_spread_over_the_range():
+    order = radical_inverse_order(1_000)
+    assert sorted(order) == list(range(1_000))
+    for prefix in (4, 16, 100):
+        gaps = np.diff(np.sort(order[:prefix]))
+        assert gaps.max() <= 2.5 * 1_000 / prefix
+
+
+def test_hole_cover_brings_every_far_point_within_the_radius():
+    rng = np.random.default_rng(2)
+    xyz = np.column_stack([rng.uniform(0, 10, size=(5_000, 2)), np.zeros(5_000)])
+    kept = np.flatnonzero(xyz[:, 0] < 2)[:50]  # picks only on the left strip
+    candidates = np.setdiff1d(np.arange(len(xyz)), kept)
+    cover = hole_cover(xyz, kept, candidates, 1.0)
+    distance = cKDTree(xyz[np.concatenate([kept, cover])]).query(xyz[candidates])[0]
+    assert distance.max() <= 1.0 and 0 < len(cover) < 200
+
+
+def test_same_picks_wherever_the_tile_sits():
+    """Only relative positions matter (up to round-off at Morton cell borders: 99 % of picks equal)."""
+    tile, _ = dense_beside_sparse(3)
+    moved = Tile(tile.xyz + [1234.5, -77.0, 3.0], tile.core, tile.centre, tile.seed)
+    here = get_simplifier("stratified")(tile, 900).indices
+    there = get_simplifier("stratified")(moved, 900).indices
+    assert len(np.intersect1d(here, there)) >= 0.99 * 900
