@@ -112,7 +112,8 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, cl
     clock.lap("read and bucket")
     counts = np.array([t.count for t in plan.tiles], dtype=np.int64)
     target = target_count(config.ratio, int(counts.sum()))
-    budgets = tile_budgets(counts, config.ratio)
+    occupied = np.array([t.occupied for t in plan.tiles], dtype=np.int64)
+    budgets = tile_budgets(counts, config.ratio, floors=occupied)  # a sparse tile keeps a point per occupied cell
     jobs = make_jobs(work, plan, slices, budgets, config)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]
     map_tasks(client, simplify_tile, pending, plan, desc="simplify", show_progress=show_progress,

@@ -21,7 +21,8 @@ Output: LAS 1.2 point format 3, mm scale, offsets at the street origin
 (UTM 17N / EPSG:26917 near Toronto, stored as a GeoTIFF GeoKeyDirectory VLR).
 classification uses ASPRS codes (11 road, 2 sidewalk/kerb, 6 building,
 5 vegetation, 14 wire, 1 cars/poles); user_data holds a Toronto3D-style label
-(see LABELS) so cars and poles stay distinguishable.
+(see LABELS) so cars and poles stay distinguishable; surface_parts() gives finer parts of
+each point (see PARTS: kerb, window, sign) for per-object scoring, without changing the file.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 
-__all__ = ["write_street_scan", "LABELS", "ORIGIN", "EPSG"]
+__all__ = ["write_street_scan", "surface_parts", "LABELS", "PARTS", "ORIGIN", "EPSG"]
 
 #: Street origin (x, y, z) in EPSG:26917 metres; also the LAS offsets.
 ORIGIN = (630000.0, 4833000.0, 80.0)
@@ -43,6 +44,8 @@ EPSG = 26917
 #: Toronto3D-style semantic labels stored in user_data.
 LABELS = {0: "unclassified", 1: "road", 2: "road_marking", 3: "natural", 4: "building",
           5: "utility_line", 6: "pole", 7: "car"}
+#: Finer parts of some surfaces (0: none, the label says it all), known to the simulator only: surface_parts().
+PARTS = {1: "kerb", 2: "window", 3: "sign"}
 
 _SCALE = 0.001
 _CREATION_DATE = date(2020, 6, 1)  # fixed so that files are byte-reproducible
@@ -119,7 +122,7 @@ class _Registry:
 
     def __init__(self):
         self.ids: dict = {None: 0}
-        self.rows: list = [(0, 0, 0.0, 0.0, 0.0, 0.0)]
+        self.rows: list = [(0, 0, 0.0, 0.0, 0.0, 0.0, 0)]
 
     def __call__(self, surf: _Surf | None) -> int:
         if surf not in self.ids:
@@ -364,17 +367,17 @@ class _Crown:
 
 
 # ------------------------------------------------------------------------ materials
-def _surf(cls, label, refl, rgb) -> _Surf:
-    return (cls, label, float(refl), float(rgb[0]), float(rgb[1]), float(rgb[2]))
+def _surf(cls, label, refl, rgb, part=0) -> _Surf:
+    return (cls, label, float(refl), float(rgb[0]), float(rgb[1]), float(rgb[2]), part)
 
 
 _ASPHALT = _surf(11, 1, 0.14, (72, 72, 75))
 _MARK_WHITE = _surf(11, 2, 0.65, (225, 225, 220))
 _MARK_YELLOW = _surf(11, 2, 0.55, (220, 180, 50))
 _SIDEWALK = _surf(2, 1, 0.35, (178, 172, 162))
-_KERB_S = _surf(2, 1, 0.40, (160, 158, 152))
-_GLASS = _surf(6, 4, 0.06, (45, 55, 65))
-_INTERIOR = _surf(6, 4, 0.18, (75, 65, 58))
+_KERB_S = _surf(2, 1, 0.40, (160, 158, 152), part=1)
+_GLASS = _surf(6, 4, 0.06, (45, 55, 65), part=2)
+_INTERIOR = _surf(6, 4, 0.18, (75, 65, 58), part=2)
 _CAR_GLASS = _surf(1, 7, 0.05, (30, 35, 42))
 _CAR_INSIDE = _surf(1, 7, 0.12, (40, 38, 36))
 _TYRE = _surf(1, 7, 0.05, (28, 28, 30))
@@ -518,7 +521,7 @@ def _add_sign(rng, side, s, x, prims):
     """Thin post with a retro-reflective plate facing the traffic."""
     y, height = s * 7.4, rng.uniform(2.8, 3.5)
     prims.append(_VCyl(side, x, y, 0.04, -0.3, height, _POLE_METAL))
-    plate = _surf(1, 6, 0.95, _SIGNS[int(rng.integers(len(_SIGNS)))])
+    plate = _surf(1, 6, 0.95, _SIGNS[int(rng.integers(len(_SIGNS)))], part=3)
     prims.append(_Box(side, (x - 0.06, y - 0.35, height - 0.7), (x - 0.04, y + 0.35, height),
                       plate))
 
@@ -733,6 +736,7 @@ def _scan_block(seed: int, j: int, phases) -> dict:
         number_of_returns=cat["nret"].astype(np.uint8),
         classification=row[:, 0].astype(np.uint8),
         user_data=row[:, 1].astype(np.uint8),
+        surface_part=row[:, 6].astype(np.uint8),
         scan_angle_rank=_SCAN_ANGLE[pulse].astype(np.int8),
         gps_time=_GPS_T0 + (cat["gid"] + 0.5) / (_PULSES * _LINE_RATE),
         rgb=(np.clip(rgb, 0, 255) * 257).astype(np.uint16),
@@ -777,7 +781,7 @@ def _header() -> laspy.LasHeader:
 def _record(parts: list, header: laspy.LasHeader) -> laspy.ScaleAwarePointRecord:
     n = sum(p["X"].size for p in parts)
     rec = laspy.ScaleAwarePointRecord.zeros(n, header=header)
-    for key in parts[0]:
+    for key in parts[0].keys() - {"surface_part"}:
         col = np.concatenate([p[key] for p in parts])
         if key == "rgb":
             rec.red, rec.green, rec.blue = col[:, 0], col[:, 1], col[:, 2]
@@ -785,6 +789,12 @@ def _record(parts: list, header: laspy.LasHeader) -> laspy.ScaleAwarePointRecord
             rec[key] = col
     rec.point_source_id = np.full(n, _POINT_SOURCE_ID, np.uint16)
     return rec
+
+
+def surface_parts(n_points: int, seed: int = 0) -> np.ndarray:
+    """(n_points,) uint8 part code (PARTS) of each point of write_street_scan(path, n_points, seed), in file
+    order: the scan is regenerated, so this costs about as long as writing it."""
+    return np.concatenate([block["surface_part"] for block in _blocks(n_points, seed)])
 
 
 def write_street_scan(path: str | os.PathLike, n_points: int = 1_500_000, seed: int = 0,

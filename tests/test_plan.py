@@ -59,6 +59,31 @@ def test_budgets_sum_to_rounded_target(ratio):
     assert (np.abs(budgets - ratio * counts) < 1 + 1e-9).all()
 
 
+@pytest.mark.parametrize("ratio", [1.0, 0.1, 0.013, 1e-3, 1e-5])
+def test_floors_keep_sparse_tiles_and_the_exact_total(ratio):
+    """A tile never falls below its floor (one point per occupied cell) while the total allows it, the
+    total stays exact, and floors beyond the total are scaled down rather than overshooting it."""
+    rng = np.random.default_rng(2)
+    counts = np.concatenate([rng.integers(1, 6, size=40), rng.integers(5_000, 50_000, size=20)])
+    floors = np.minimum(counts, rng.integers(1, 30, size=len(counts)))
+    budgets = tile_budgets(counts, ratio, floors)
+    target = target_count(ratio, int(counts.sum()))
+    assert budgets.sum() == target and (budgets <= counts).all() and (budgets >= 0).all()
+    if floors.sum() <= target:
+        assert (budgets >= floors).all()
+        plain = tile_budgets(counts, ratio)
+        assert (plain[:40] == 0).any() or ratio >= 0.1  # without floors the smallest tiles round to nothing
+    else:
+        assert (budgets <= floors).all()
+
+
+def test_floors_are_occupied_cells():
+    xyz = np.array([[0.5, 0.5, 0], [0.6, 0.5, 0], [3.5, 0.5, 0], [90.0, 90.0, 0]])
+    grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=8)  # 1-unit cells, 8 per tile
+    plan = plan_tiles(grid, grid.count([xyz]), max_points=100)
+    assert sorted((t.count, t.occupied) for t in plan.tiles) == [(1, 1), (3, 2)]
+
+
 def test_target_rounds_half_up():
     assert target_count(0.5, 3) == 2
     assert target_count(0.1, 15) == 2

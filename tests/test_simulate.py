@@ -180,3 +180,18 @@ def test_rejects_bad_arguments(tmp_path):
     with pytest.raises(ValueError):
         write_street_scan(tmp_path / "s.laz", n_points=0)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_surface_parts_align_with_the_written_points(tmp_path):
+    """Kerb, window and sign parts are found where their surfaces are: right classes and labels."""
+    from pipeline.simulate import PARTS, surface_parts
+
+    path = tmp_path / "s.las"
+    write_street_scan(path, n_points=120_000, seed=2)
+    las = laspy.read(path)
+    parts = surface_parts(120_000, seed=2)
+    assert len(parts) == len(las.points) and set(np.unique(parts)) <= {0, *PARTS}
+    classification, label = np.asarray(las.classification), np.asarray(las.user_data)
+    assert (parts == 1).any() and (classification[parts == 1] == 2).all()   # kerb: ground class 2
+    assert (parts == 2).any() and (label[parts == 2] == 4).all()            # window: building label
+    assert (label[parts == 3] == 6).all()                                     # sign plate: pole label

@@ -47,13 +47,14 @@ class DensityGrid:
 
 @dataclass(frozen=True)
 class TileRect:
-    """A tile's core: cells [i0, i1) x [j0, j1), and its point count."""
+    """A tile's core: cells [i0, i1) x [j0, j1), its point count and how many of its cells hold points."""
 
     i0: int
     i1: int
     j0: int
     j1: int
     count: int
+    occupied: int
 
 
 @dataclass(frozen=True)
@@ -96,10 +97,9 @@ class TilePlan:
 
 def plan_tiles(grid: DensityGrid, counts: np.ndarray, max_points: int) -> TilePlan:
     """Cut the grid into nominal tiles of 8x8 cells, quarter any holding more than max_points, drop empty ones."""
-    summed = np.zeros((counts.shape[0] + 1, counts.shape[1] + 1), dtype=np.int64)
-    summed[1:, 1:] = counts.cumsum(0).cumsum(1)
+    points, cells = summed_table(counts), summed_table(counts > 0)
 
-    def rect_count(i0: int, i1: int, j0: int, j1: int) -> int:
+    def rect_count(i0: int, i1: int, j0: int, j1: int, summed: np.ndarray = points) -> int:
         return int(summed[i1, j1] - summed[i0, j1] - summed[i1, j0] + summed[i0, j0])
 
     def split(i0: int, i1: int, j0: int, j1: int) -> list[TileRect]:
@@ -107,7 +107,7 @@ def plan_tiles(grid: DensityGrid, counts: np.ndarray, max_points: int) -> TilePl
         if n == 0:
             return []
         if n <= max_points or (i1 - i0 == 1 and j1 - j0 == 1):
-            return [TileRect(i0, i1, j0, j1, n)]
+            return [TileRect(i0, i1, j0, j1, n, rect_count(i0, i1, j0, j1, cells))]
         im, jm = (i0 + i1 + 1) // 2, (j0 + j1 + 1) // 2
         parts = []
         for a0, a1 in ((i0, im), (im, i1)):
@@ -125,3 +125,10 @@ def plan_tiles(grid: DensityGrid, counts: np.ndarray, max_points: int) -> TilePl
     for tile_id, t in enumerate(tiles):
         cell_tile[t.i0:t.i1, t.j0:t.j1] = tile_id
     return TilePlan(grid, tuple(tiles), cell_tile.ravel())
+
+
+def summed_table(values: np.ndarray) -> np.ndarray:
+    """(nx+1, ny+1) int64 summed-area table: any rectangle's total from four look-ups."""
+    summed = np.zeros((values.shape[0] + 1, values.shape[1] + 1), dtype=np.int64)
+    summed[1:, 1:] = values.astype(np.int64).cumsum(0).cumsum(1)
+    return summed

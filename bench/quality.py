@@ -1,0 +1,310 @@
+"""Where each method keeps points, and what that costs: the table issue 10 decides by, with pictures.
+
+    python bench/quality.py [--scans autzen_trim.laz,street] [--ratios 0.2,0.1,0.05]
+                            [--methods learned,stratified,fps,random,voxel] [--peer] [--out bench/results]
+
+For each scan and ratio, every method runs through `pipeline.run` (tiled, 2 workers, one cluster),
+and so does FPS over the whole scan as one tile ("fps untiled", the coverage reference) and, with
+--peer, CloudCompare's spatial subsampling at the same count (its minimum distance searched, then
+the surplus dropped at random; Debian's `cloudcompare`). Each result is scored against the whole scan
+with every metric of model.metrics.quality and the 99th percentile of the scan-to-result distance.
+Pictures (PNG, under --out/quality/): per scan, a kept-to-expected density map per method (points
+kept per cell over ratio x points there, cells of ~100 scan points at the median; grey: under one expected) and, on the simulated
+street, a side view of labelled objects. On the street every label (and the simulator's finer parts:
+kerb, window, sign) is scored on its own: share of its points kept, and the 99th-percentile distance
+from its points to the nearest kept point, beside FPS's. Writes quality.md and quality.json.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import laspy
+import numpy as np
+from matplotlib.colors import TwoSlopeNorm
+from matplotlib.figure import Figure
+
+HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))
+
+from model import Tile  # noqa: E402
+from model.baselines import fps_simplify  # noqa: E402
+from model.geometry import point_features  # noqa: E402
+from model.metrics import nearest, quality  # noqa: E402
+from pipeline.config import build_config  # noqa: E402
+from pipeline.execute import cluster  # noqa: E402
+from pipeline.runner import run_scan  # noqa: E402
+from pipeline.simulate import LABELS, PARTS, surface_parts, write_street_scan  # noqa: E402
+from tiling.budgets import target_count  # noqa: E402
+
+DEFAULT_DATA = HERE.parents[1] / "shared" / "data" / "lidar"
+SCANS = ("bcts_1.laz", "bcts_2.laz", "bcts_3.laz", "bcts_4.laz", "autzen_trim.laz", "lone-star.laz",
+         "las_with_several_extra_byte_bloc.laz", "street")
+STREET_POINTS, STREET_SEED = 600_000, 3
+METHODS = ("learned", "stratified", "fps", "random", "voxel")
+UNTILED, PEER = "fps untiled", "cloudcompare spatial"
+CELL_POINTS = 100  # scan points per density-map cell, on average over occupied cells
+STRUCTURE = ("building", "window", "kerb", "pole", "sign", "car", "utility_line")
+
+
+@dataclass(frozen=True)
+class Row:
+    """One method on one scan at one ratio."""
+
+    scan: str
+    ratio: float
+    method: str
+    points: int
+    chamfer: float
+    hausdorff: float
+    p99: float
+    curvature_error: float
+    roughness_error: float
+    sdm: float
+    normal_consistency: float
+
+
+def load_scan(name: str, data: Path, work: Path) -> tuple[Path, laspy.LasData]:
+    """The scan's path and its points (the simulated street is written once into `work`)."""
+    if name == "street":
+        path = work / "street.las"
+        if not path.exists():
+            write_street_scan(path, STREET_POINTS, seed=STREET_SEED)
+    else:
+        path = data / name
+    return path, laspy.read(path)
+
+
+def xyz_of(las: laspy.LasData) -> np.ndarray:
+    """(n, 3) float64 coordinates."""
+    return np.column_stack([las.x, las.y, las.z]).astype(np.float64)
+
+
+def untiled_fps(xyz: np.ndarray, count: int) -> np.ndarray:
+    """Indices of FPS over the whole scan as one tile."""
+    tile = Tile(xyz - xyz.mean(axis=0), np.ones(len(xyz), dtype=bool), np.zeros(3), seed=0)
+    return fps_simplify(tile, count).indices
+
+
+def cloudcompare_spatial(xyz: np.ndarray, count: int, work: Path) -> np.ndarray:
+    """Indices of CloudCompare's `-SS SPATIAL d` result, d searched so it keeps at least `count`, surplus
+    dropped at random (seeded). CloudCompare reads PLY here; its points are matched back by position."""
+    from plyfile import PlyData, PlyElement
+
+    centre = xyz.mean(axis=0)
+    local = (xyz - centre).astype(np.float32)
+    vertex = np.empty(len(local), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    vertex["x"], vertex["y"], vertex["z"] = local.T
+    source, result = work / "cc_in.ply", work / "cc_out.ply"
+    PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(str(source))
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+
+    def run(distance: float) -> np.ndarray:
+        result.unlink(missing_ok=True)
+        subprocess.run(["CloudCompare", "-SILENT", "-AUTO_SAVE", "OFF", "-O", str(source), "-SS", "SPATIAL",
+                        f"{distance:.6g}", "-C_EXPORT_FMT", "PLY", "-SAVE_CLOUDS", "FILE", str(result)],
+                       check=True, env=env, capture_output=True, timeout=600)
+        kept = PlyData.read(str(result))["vertex"]
+        return np.column_stack([kept["x"], kept["y"], kept["z"]]).astype(np.float64)
+
+    spacing = float(np.sqrt(np.prod(np.ptp(local[:, :2], axis=0)) / count))
+    low, high = spacing * 0.05, spacing * 4  # too close (keeps more), too far (keeps fewer)
+    best = run(low)
+    for _ in range(12):
+        middle = float(np.sqrt(low * high))
+        kept = run(middle)
+        if len(kept) >= count:
+            low, best = middle, kept
+        else:
+            high = middle
+        if count <= len(best) <= count * 1.01:
+            break
+    index = nearest(local.astype(np.float64), best).index
+    index = np.unique(index)
+    return np.random.default_rng(0).permutation(index)[:count]
+
+
+def score(scan: str, ratio: float, method: str, xyz: np.ndarray, kept: np.ndarray, features) -> Row:
+    """Every metric of the kept points against the scan, and the 99th-percentile scan-to-kept distance."""
+    q = quality(xyz, xyz[kept], features)
+    p99 = float(np.sqrt(np.quantile(nearest(xyz[kept], xyz).sq_dist, 0.99)))
+    return Row(scan, ratio, method, len(kept), q.chamfer, q.hausdorff, p99, q.curvature_error, q.roughness_error,
+               q.sdm, q.normal_consistency)
+
+
+def kept_indices(output: Path, las: laspy.LasData) -> np.ndarray:
+    """Indices into the scan of an output's points (matched by their integer coordinates)."""
+    out = laspy.read(output)
+    scan_keys = np.column_stack([las.X, las.Y, las.Z]).astype(np.int64)
+    out_keys = np.column_stack([out.X, out.Y, out.Z]).astype(np.int64)
+    index = nearest(scan_keys.astype(np.float64), out_keys.astype(np.float64)).index
+    return index
+
+
+def density_map(scan: str, ratio: float, xyz: np.ndarray, picks: dict[str, np.ndarray], path: Path) -> Path:
+    """A panel per method: log2 of (kept per cell) / (ratio x scan points per cell); white is 'as expected'."""
+    low, high = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+    side = float(np.sqrt(np.prod(np.maximum(high - low, 1e-9)) * CELL_POINTS / len(xyz)))
+    for _ in range(4):  # so the median occupied cell holds about CELL_POINTS scan points
+        _, per_cell = np.unique(np.floor((xyz[:, :2] - low) / side).astype(np.int64), axis=0, return_counts=True)
+        side *= float(np.sqrt(CELL_POINTS / np.median(per_cell)))
+    shape = np.maximum(np.ceil((high - low) / side).astype(int), 1)
+
+    def counts(points: np.ndarray) -> np.ndarray:
+        ij = np.minimum(np.floor((points[:, :2] - low) / side).astype(int), shape - 1)
+        return np.bincount(ij[:, 0] * shape[1] + ij[:, 1], minlength=shape[0] * shape[1]).reshape(shape)
+
+    expected = counts(xyz) * ratio
+    columns = len(picks)
+    aspect = shape[1] / shape[0]
+    figure = Figure(figsize=(3.4 * columns, max(2.2, 3.4 * aspect) + 0.6), layout="constrained")
+    axes = figure.subplots(1, columns, squeeze=False)[0]
+    image = None
+    for ax, (method, kept) in zip(axes, picks.items()):
+        with np.errstate(divide="ignore", invalid="ignore"):  # an empty cell shows as -2 (a quarter or less)
+            share = np.log2(np.maximum(counts(xyz[kept]), expected / 4) / expected)
+        share[expected < 1] = np.nan  # cells expected to keep less than one point say nothing
+        ax.set_facecolor("#cccccc")
+        image = ax.imshow(share.T, origin="lower", cmap="RdBu_r", norm=TwoSlopeNorm(0, -2, 2), interpolation="nearest")
+        ax.set_title(method, fontsize=9)
+        ax.set_xticks([]), ax.set_yticks([])
+    figure.colorbar(image, ax=list(axes), shrink=0.8, label="log2 kept / expected")
+    figure.suptitle(f"{scan} at {ratio:g}: kept-to-expected density, cells of {side:.3g} units", fontsize=10)
+    figure.savefig(path, dpi=80)
+    return path
+
+
+def street_labels(las: laspy.LasData) -> dict[str, np.ndarray]:
+    """Label name -> mask of the street's points: Toronto3D-style labels, then the finer parts."""
+    label = np.asarray(las.user_data)
+    masks = {name: label == code for code, name in LABELS.items() if (label == code).any()}
+    parts = surface_parts(STREET_POINTS, STREET_SEED)
+    masks.update({name: parts == code for code, name in PARTS.items()})
+    return masks
+
+
+def label_rows(ratio: float, xyz: np.ndarray, masks: dict[str, np.ndarray], picks: dict[str, np.ndarray]) -> list[dict]:
+    """Per label and method: share of the label's points kept, p99 distance from them to the nearest kept point."""
+    rows = []
+    for name, mask in masks.items():
+        for method, kept in picks.items():
+            distance = np.sqrt(nearest(xyz[kept], xyz[mask]).sq_dist)
+            rows.append({"ratio": ratio, "label": name, "method": method, "points": int(mask.sum()),
+                         "share": float(np.isin(np.flatnonzero(mask), kept).sum() / mask.sum() / ratio),
+                         "p99": float(np.quantile(distance, 0.99))})
+    return rows
+
+
+def object_view(ratio: float, xyz: np.ndarray, masks: dict[str, np.ndarray], picks: dict[str, np.ndarray],
+                path: Path) -> Path:
+    """Side views (x, z) of the street's first 40 m with a sign, pole, car and kerb: scan, then each method."""
+    x0 = float(np.quantile(xyz[masks["sign"], 0], 0.5)) - 20 if masks["sign"].any() else float(xyz[:, 0].min())
+    near = (xyz[:, 0] > x0) & (xyz[:, 0] < x0 + 40) & (xyz[:, 1] < np.quantile(xyz[:, 1], 0.5))
+    colours = {"building": "#999999", "window": "#3b6ea5", "kerb": "#d62728", "pole": "#2ca02c", "sign": "#ff7f0e",
+               "car": "#9467bd", "utility_line": "#000000", "natural": "#b5cf6b"}
+    panels = {"scan": np.flatnonzero(near), **{m: kept[near[kept]] for m, kept in picks.items()}}
+    figure = Figure(figsize=(12, 2.0 * len(panels)), layout="constrained")
+    axes = figure.subplots(len(panels), 1, squeeze=False, sharex=True)[:, 0]
+    for ax, (title, index) in zip(axes, panels.items()):
+        size = 0.3 if title == "scan" else 1.5
+        ax.scatter(xyz[index, 0], xyz[index, 2], s=size, c="#dddddd", linewidths=0)
+        for name, colour in colours.items():
+            chosen = index[masks[name][index]] if name in masks else index[:0]
+            ax.scatter(xyz[chosen, 0], xyz[chosen, 2], s=size * 2, c=colour, linewidths=0, label=name)
+        ax.set_title(f"{title} ({len(index):,} points)", fontsize=9)
+        ax.set_aspect("equal")
+    axes[0].legend(fontsize=7, markerscale=6, ncol=8, loc="upper right")
+    figure.savefig(path, dpi=90)
+    return path
+
+
+def run_bench(scans: list[str], ratios: list[float], methods: list[str], peer: bool, data: Path, out: Path) -> None:
+    """Run everything, print and write the tables, draw the pictures."""
+    pictures = out / "quality"
+    pictures.mkdir(parents=True, exist_ok=True)
+    rows: list[Row] = []
+    labels: list[dict] = []
+    with tempfile.TemporaryDirectory(prefix="quality-") as tmp, cluster(2, "2GB", None) as client:
+        work = Path(tmp)
+        for name in scans:
+            path, las = load_scan(name, data, work)
+            xyz = xyz_of(las)
+            xyz -= xyz.mean(axis=0)
+            features = point_features(xyz)
+            for ratio in ratios:
+                count = target_count(ratio, len(xyz))
+                picks: dict[str, np.ndarray] = {}
+                for method in methods:
+                    output = work / f"{method}.las"
+                    run_scan([path], output, build_config(ratio=ratio, method=method, workers=2), overwrite=True,
+                             show_progress=False, client=client)
+                    picks[method] = kept_indices(output, las)
+                picks[UNTILED] = untiled_fps(xyz, count)
+                if peer and shutil.which("CloudCompare"):
+                    picks[PEER] = cloudcompare_spatial(xyz, count, work)
+                for method, kept in picks.items():
+                    rows.append(score(name, ratio, method, xyz, kept, features))
+                    print(format_row(rows[-1]), flush=True)
+                stem = f"{Path(name).stem}-{ratio:g}"
+                density_map(name, ratio, xyz, picks, pictures / f"density-{stem}.png")
+                if name == "street":
+                    masks = street_labels(las)
+                    labels += label_rows(ratio, xyz, masks, picks)
+                    object_view(ratio, xyz, masks, picks, pictures / f"objects-{stem}.png")
+    (out / "quality.json").write_text(json.dumps({"rows": [asdict(r) for r in rows], "labels": labels}, indent=1))
+    (out / "quality.md").write_text(markdown(rows, labels))
+    print(markdown(rows, labels))
+
+
+def format_row(r: Row) -> str:
+    return (f"{r.scan:38s} {r.ratio:<5g} {r.method:22s} {r.points:8d} CD {r.chamfer:.4g} H {r.hausdorff:.4g} "
+            f"p99 {r.p99:.4g} CE {r.curvature_error:.5f} RE {r.roughness_error:.5f} SDM {r.sdm:.4f} "
+            f"NC {r.normal_consistency:.4f}")
+
+
+def markdown(rows: list[Row], labels: list[dict]) -> str:
+    """The metric table with each value's ratio to the best baseline (CE/RE/SDM) or to untiled FPS (CD, p99)."""
+    lines = ["| scan | ratio | method | CD | Hausdorff | p99 | CE | RE | SDM | NC | CD / untiled FPS | "
+             "p99 / untiled FPS | CE / best baseline |", "|" + " --- |" * 13]
+    for r in rows:
+        group = [g for g in rows if g.scan == r.scan and g.ratio == r.ratio]
+        untiled = next(g for g in group if g.method == UNTILED)
+        baselines = [g for g in group if g.method in ("random", "fps", "voxel", PEER, UNTILED)]
+        best_ce = min(g.curvature_error for g in baselines) if baselines else float("nan")
+        lines.append(f"| {r.scan} | {r.ratio:g} | {r.method} | {r.chamfer:.4g} | {r.hausdorff:.4g} | {r.p99:.4g} | "
+                     f"{r.curvature_error:.5f} | {r.roughness_error:.5f} | {r.sdm:.4f} | {r.normal_consistency:.4f} | "
+                     f"{r.chamfer / untiled.chamfer:.2f} | {r.p99 / untiled.p99:.2f} | {r.curvature_error / best_ce:.2f} |")
+    if labels:
+        lines += ["", "Street labels: share kept (1 = the ratio's share) and p99 distance from the label's points "
+                  "to the nearest kept point (m).", "",
+                  "| ratio | label | points | method | share | p99 | p99 / FPS (tiled) |", "|" + " --- |" * 7]
+        for row in labels:
+            fps = next(x for x in labels if x["ratio"] == row["ratio"] and x["label"] == row["label"]
+                       and x["method"] == "fps")
+            lines.append(f"| {row['ratio']:g} | {row['label']} | {row['points']:,} | {row['method']} | "
+                         f"{row['share']:.2f} | {row['p99']:.3f} | {row['p99'] / max(fps['p99'], 1e-12):.2f} |")
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
+    parser.add_argument("--scans", default=",".join(SCANS))
+    parser.add_argument("--ratios", default="0.2,0.1,0.05")
+    parser.add_argument("--methods", default=",".join(METHODS))
+    parser.add_argument("--peer", action="store_true", help="add CloudCompare's spatial subsampling (Debian cloudcompare)")
+    parser.add_argument("--out", type=Path, default=HERE / "results")
+    args = parser.parse_args()
+    run_bench(args.scans.split(","), [float(r) for r in args.ratios.split(",")], args.methods.split(","),
+              args.peer, args.data, args.out)
+
+
+if __name__ == "__main__":
+    main()
