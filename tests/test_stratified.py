@@ -71,3 +71,21 @@ def test_same_picks_wherever_the_tile_sits():
     here = get_simplifier("stratified")(tile, 900).indices
     there = get_simplifier("stratified")(moved, 900).indices
     assert len(np.intersect1d(here, there)) >= 0.99 * 900
+
+
+def test_thin_pole_on_a_dense_plane_keeps_its_whole_height():
+    """A 10 m pole of 300 points on a plane of 60,000: at 0.01 random keeps about 3 pole points and leaves
+    metres of it bare; stratified covers the pole from foot to top."""
+    rng = np.random.default_rng(7)
+    plane = np.column_stack([rng.uniform(0, 30, size=(60_000, 2)), rng.normal(0, 0.01, 60_000)])
+    height = rng.uniform(0, 10, 300)
+    angle = rng.uniform(0, 2 * np.pi, 300)
+    pole = np.column_stack([15 + 0.05 * np.cos(angle), 15 + 0.05 * np.sin(angle), height])
+    xyz = np.concatenate([plane, pole])
+    tile = Tile(xyz - xyz.mean(0), np.ones(len(xyz), bool), np.zeros(3), seed=1)
+    budget = round(0.01 * len(xyz))
+    on_pole = np.arange(len(xyz)) >= len(plane)
+    gaps = {m: cKDTree(tile.xyz[get_simplifier(m)(tile, budget).indices]).query(tile.xyz[on_pole])[0].max()
+            for m in ("stratified", "random")}
+    spacing = typical_spacing(tile.xyz[get_simplifier("stratified")(tile, budget).indices])
+    assert gaps["stratified"] <= 2 * spacing * (1 + 1e-9) < gaps["random"]
