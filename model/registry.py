@@ -32,6 +32,7 @@ _SIMPLIFIERS: dict[str, Simplifier] = {
     "learned-refined": learned_refined_simplify,
 }
 LEARNED = ("learned", "learned-refined")
+EVEN_SPACING = ("fps", "voxel")  # methods that space points evenly: tile budgets follow covered volume, not counts
 METHODS = tuple(_SIMPLIFIERS)
 
 

@@ -12,17 +12,18 @@ from typing import Iterator, Sequence
 import numpy as np
 from dask.distributed import Client
 
+from model.registry import EVEN_SPACING
 from pipeline.config import RunConfig, parse_size
 from pipeline.crs import crs_wkt
 from pipeline.errors import PipelineError
 from pipeline.atomic import remove_stale_temporaries
 from pipeline.execute import cluster, map_tasks
 from pipeline.scan import Piece, Scan
-from pipeline.tasks import TileJob, bucket_piece, simplify_tile
+from pipeline.tasks import CoverageJob, TileJob, bucket_piece, simplify_tile, tile_coverage
 from pipeline.validate import check_run
 from pipeline.workdir import WorkDir
 from pipeline.writers import OUTPUT_SUFFIXES, OutputMeta, TilePart, write_output
-from tiling.budgets import target_count, tile_budgets
+from tiling.budgets import coverage_weights, target_count, tile_budgets
 from tiling.bucket import row_ranges
 from tiling.plan import DensityGrid, TilePlan, plan_tiles
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
@@ -113,7 +114,10 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, cl
     counts = np.array([t.count for t in plan.tiles], dtype=np.int64)
     target = target_count(config.ratio, int(counts.sum()))
     occupied = np.array([t.occupied for t in plan.tiles], dtype=np.int64)
-    budgets = tile_budgets(counts, config.ratio, floors=occupied)  # a sparse tile keeps a point per occupied cell
+    weights = None
+    if config.method in EVEN_SPACING:  # tiles share out the points as one pass over the whole scan would
+        weights = scan_coverage(client, plan, slices, work, config, target, show_progress)
+    budgets = tile_budgets(counts, config.ratio, floors=occupied, weights=weights)  # floors: a point per occupied cell
     jobs = make_jobs(work, plan, slices, budgets, config)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]
     map_tasks(client, simplify_tile, pending, plan, desc="simplify", show_progress=show_progress,
@@ -168,6 +172,22 @@ def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], work: WorkDir, 
         slices.append([Slice(piece.number, int(lo), int(hi)) for piece, (cells, starts) in zip(pieces, buckets)
                        for lo, hi in row_ranges(cells, starts, cell_ranges)])
     return plan, slices
+
+
+COVERAGE_LEVELS = 2.0 ** np.arange(-4, 5)  # voxel sizes, relative to the 2-D spacing estimate
+
+
+def scan_coverage(client: Client, plan: TilePlan, slices: list[list[Slice]], work: WorkDir, config: RunConfig,
+                  target: int, show_progress: bool) -> np.ndarray:
+    """Per-tile weights for an even spacing over the whole scan: each tile's occupied voxels at the size
+    where the scan holds `target` of them (tiling.budgets.coverage_weights), from one read of each tile."""
+    cell_area = plan.grid.cell ** 2
+    spacing = float(np.sqrt(sum(t.occupied for t in plan.tiles) * cell_area / max(target, 1)))
+    sizes = tuple(float(s) for s in spacing * COVERAGE_LEVELS)
+    jobs = [CoverageJob(str(work.store_path), tile_id, tuple(slices[tile_id]), chunk_cache_bytes(config), sizes)
+            for tile_id in range(len(plan.tiles))]
+    occupied = map_tasks(client, tile_coverage, jobs, plan, desc="measure coverage", show_progress=show_progress)
+    return coverage_weights(np.array(occupied), np.array(sizes), target)
 
 
 def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray,

@@ -15,6 +15,7 @@ from model import Tile, get_simplifier
 from pipeline.scan import Piece, Scan, scaled_xyz
 from pipeline.workdir import WorkDir, save_npz, write_atomically
 from tiling.bucket import bucket_by_cell
+from tiling.budgets import occupied_voxels
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, TileStore
 
@@ -80,3 +81,23 @@ def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     write_atomically(Path(job.result_path),
                      lambda tmp: save_npz(tmp, rows=seen[selection.indices], xyz=selection.xyz + centre))
     return TileOutcome(job.tile_id, len(xyz), len(selection.indices), time.perf_counter() - started)
+
+
+@dataclass(frozen=True)
+class CoverageJob:
+    """One tile's points to count occupied voxels of, at each of `sizes` (scan units)."""
+
+    store_path: str
+    tile_id: int
+    slices: tuple[Slice, ...]
+    cache_bytes: int
+    sizes: tuple[float, ...]
+
+
+def tile_coverage(job: CoverageJob, plan: TilePlan) -> np.ndarray:
+    """Occupied voxels of the tile's core points at each size: what a scan-wide even spacing gives it."""
+    store = TileStore.open(Path(job.store_path))
+    xyz = scaled_xyz(store.load(job.slices, job.cache_bytes).records, np.asarray(store.attrs["scales"]),
+                     np.asarray(store.attrs["offsets"]))
+    core = xyz[plan.core_mask(job.tile_id, xyz)]
+    return occupied_voxels(core - core.mean(axis=0) if len(core) else core, np.asarray(job.sizes))

@@ -88,3 +88,20 @@ def test_target_rounds_half_up():
     assert target_count(0.5, 3) == 2
     assert target_count(0.1, 15) == 2
     assert target_count(1.0, 7) == 7
+
+
+def test_coverage_weights_give_equal_areas_equal_shares_whatever_their_density():
+    """Two 10 x 10 planes, one 20x denser: counts would give the dense one 20x the points, an even spacing
+    over both gives them about the same; the weights follow the size at which the total meets the target."""
+    from tiling.budgets import coverage_weights, occupied_voxels
+
+    rng = np.random.default_rng(0)
+    dense = np.column_stack([rng.uniform(0, 10, size=(40_000, 2)), np.zeros(40_000)])
+    sparse = np.column_stack([rng.uniform(0, 10, size=(2_000, 2)), np.zeros(2_000)])
+    sizes = 0.5 * 2.0 ** np.arange(-4, 5)
+    occupied = np.array([occupied_voxels(dense, sizes), occupied_voxels(sparse, sizes)])
+    assert (np.diff(occupied, axis=1) <= 0).all()  # coarser voxels, fewer occupied
+    weights = coverage_weights(occupied, sizes, target=800)
+    assert abs(weights.sum() - 800) < 0.1 * 800 and 0.8 < weights[0] / weights[1] < 1.25
+    budgets = tile_budgets(np.array([40_000, 2_000]), 800 / 42_000, weights=weights)
+    assert budgets.sum() == 800 and 0.8 < budgets[0] / budgets[1] < 1.25

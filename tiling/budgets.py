@@ -9,27 +9,33 @@ def target_count(ratio: float, total: int) -> int:
     return min(total, int(np.floor(ratio * total + 0.5)))
 
 
-def tile_budgets(counts: np.ndarray, ratio: float, floors: np.ndarray | None = None) -> np.ndarray:
-    """Integer budgets <= counts summing to target_count(ratio, counts.sum()): proportional to the counts,
-    but never below a tile's floor (e.g. one point per occupied plan cell, so a sparse tile keeps its area).
+def tile_budgets(counts: np.ndarray, ratio: float, floors: np.ndarray | None = None,
+                 weights: np.ndarray | None = None) -> np.ndarray:
+    """Integer budgets <= counts summing to target_count(ratio, counts.sum()): proportional to `weights`
+    (the counts by default; coverage_weights for methods that space points evenly), never above a
+    tile's count and never below its floor (e.g. one point per occupied plan cell, so a sparse tile keeps
+    its area).
 
-    Quotas are max(floor, c * count) with c chosen so they sum to the target (floors scaled down if
-    they alone exceed it); integers by the largest-remainder method, ties to the lower tile id.
+    Quotas are min(count, max(floor, c * weight)) with c chosen so they sum to the target (floors scaled
+    down if they alone exceed it); integers by the largest-remainder method, ties to the lower tile id.
     """
     counts = np.asarray(counts, dtype=np.int64)
+    weights = counts.astype(np.float64) if weights is None else np.asarray(weights, dtype=np.float64)
     target = target_count(ratio, int(counts.sum()))
     floors = np.zeros_like(counts) if floors is None else np.minimum(np.asarray(floors, dtype=np.int64), counts)
     if floors.sum() >= target:
         return largest_remainder(floors * (target / max(int(floors.sum()), 1)), floors, target)
-    bound = np.zeros(len(counts), dtype=bool)  # tiles held at their floor
+    low = np.zeros(len(counts), dtype=bool)  # tiles held at their floor
+    high = np.zeros(len(counts), dtype=bool)  # tiles held at their count
     while True:
-        free = ~bound
-        scale = (target - floors[bound].sum()) / max(int(counts[free].sum()), 1)
-        newly = free & (scale * counts < floors)
-        if not newly.any():
+        free = ~(low | high)
+        scale = (target - floors[low].sum() - counts[high].sum()) / max(float(weights[free].sum()), 1e-300)
+        newly_low, newly_high = free & (scale * weights < floors), free & (scale * weights > counts)
+        if not (newly_low.any() or newly_high.any()):
             break
-        bound |= newly
-    quotas = np.where(bound, floors, counts * scale)
+        low |= newly_low
+        high |= newly_high
+    quotas = np.where(low, floors, np.where(high, counts, weights * scale))
     return largest_remainder(quotas, counts, target, minimum=floors)
 
 
@@ -44,3 +50,32 @@ def largest_remainder(quotas: np.ndarray, caps: np.ndarray, target: int, minimum
     order = order[budgets[order] < caps[order]]
     budgets[order[:short]] += 1
     return budgets
+
+
+def occupied_voxels(xyz: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+    """(len(sizes),) number of occupied cubic voxels of each edge length among the (n, 3) points."""
+    counts = np.zeros(len(sizes), dtype=np.int64)
+    if len(xyz) == 0:
+        return counts
+    low = xyz.min(axis=0)
+    for level, size in enumerate(sizes):
+        ijk = np.floor((xyz - low) / size).astype(np.int64)
+        span = ijk.max(axis=0) + 1
+        counts[level] = len(np.unique((ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]))
+    return counts
+
+
+def coverage_weights(occupied: np.ndarray, sizes: np.ndarray, target: int) -> np.ndarray:
+    """Per-tile share of a uniform-spacing pass over the whole scan: each tile's occupied voxels at the
+    voxel size whose scan-wide total is `target` (log-log interpolation between the measured sizes).
+
+    occupied: (tiles, levels) counts at `sizes` (ascending). A global FPS or voxel thinning keeps about one
+    point per such voxel, so budgets in proportion to these counts make tiles agree on one spacing.
+    """
+    totals = occupied.sum(axis=0).astype(np.float64)  # falls as the size grows
+    log_sizes, log_totals = np.log(sizes), np.log(np.maximum(totals, 1))
+    at = float(np.interp(-np.log(max(target, 1)), -log_totals, log_sizes))  # np.interp wants ascending x
+    weights = np.empty(len(occupied))
+    for tile, row in enumerate(np.log(np.maximum(occupied, 1e-3))):
+        weights[tile] = np.exp(np.interp(at, log_sizes, row))
+    return weights
