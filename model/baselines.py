@@ -29,7 +29,22 @@ def uniform_vertices(vertices: np.ndarray, ratio: float, seed: int = 0) -> np.nd
 
 
 def fps_simplify(tile: Tile, budget: int) -> Selection:
-    """Farthest point sampling over core+halo (so spacing continues across seams), keeping core picks.
+    """Farthest point sampling over the tile's core points; the halo is not used.
+
+    FPS over core+halo keeping core picks (farthest_core_picks) leaves holes along seams: each tile
+    counts its halo picks as covering the seam band, but drops them, and the neighbour's own picks lie
+    elsewhere. Measured at 0.1 (tiled Hausdorff / untiled FPS's): street 2.1 -> 1.04, lone-star
+    1.7 -> 1.10, bcts_1 1.8 -> 1.19, with the same Chamfer and p99.
+    """
+    core = np.flatnonzero(tile.core)
+    if len(core) == len(tile.xyz):
+        return farthest_core_picks(tile, budget)
+    own = Tile(tile.xyz[core], np.ones(len(core), dtype=bool), tile.centre, tile.seed)
+    return Selection.of(tile, core[farthest_core_picks(own, budget).indices])
+
+
+def farthest_core_picks(tile: Tile, budget: int) -> Selection:
+    """Farthest point sampling over core+halo, keeping core picks until `budget` of them are made.
 
     fpsample's bucket FPS returns points in FPS order; the halo share of the samples is estimated and
     the run repeated with more samples if too few core points came out. Exact duplicates come last.

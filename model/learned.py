@@ -8,7 +8,7 @@ from typing import Callable
 import numpy as np
 import torch
 
-from model.baselines import fps_simplify
+from model.baselines import farthest_core_picks
 from model.network import LearnedSimplifier, knn_graph, latent_fps, normalise, row_blocks
 from model.selection import Selection, Tile
 
@@ -44,7 +44,7 @@ def reduced_latent_order(feature_rows: Callable[[slice | torch.Tensor], torch.Te
     reduced = torch.empty(count, top.shape[1])
     for rows in row_blocks(count):
         reduced[rows] = (feature_rows(rows) - centre) @ top
-    return fps_simplify(Tile(reduced.numpy(), core, np.zeros(top.shape[1]), seed), budget).indices
+    return farthest_core_picks(Tile(reduced.numpy(), core, np.zeros(top.shape[1]), seed), budget).indices
 
 
 def exact_latent_order(features: torch.Tensor, tile: Tile, budget: int) -> np.ndarray:

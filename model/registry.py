@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from model.baselines import fps_simplify, random_simplify, tcp_simplify, voxel_simplify
 from model.selection import Selection, Simplifier, Tile
-from model.stratified import stratified_simplify
+from model.stratified import COVER_SPACINGS, stratified_simplify
 
 
 def learned_simplify(tile: Tile, budget: int) -> Selection:
@@ -33,6 +33,7 @@ _SIMPLIFIERS: dict[str, Simplifier] = {
 }
 LEARNED = ("learned", "learned-refined")
 EVEN_SPACING = ("fps", "voxel")  # methods that space points evenly: tile budgets follow covered volume, not counts
+HOLE_COVERED = {"stratified": COVER_SPACINGS}  # method -> cover radius in spacings: tile budgets hold a point per such voxel
 METHODS = tuple(_SIMPLIFIERS)
 
 

@@ -12,7 +12,7 @@ from typing import Iterator, Sequence
 import numpy as np
 from dask.distributed import Client
 
-from model.registry import EVEN_SPACING
+from model.registry import EVEN_SPACING, HOLE_COVERED
 from pipeline.config import RunConfig, parse_size
 from pipeline.crs import crs_wkt
 from pipeline.errors import PipelineError
@@ -113,11 +113,14 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, cl
     clock.lap("read and bucket")
     counts = np.array([t.count for t in plan.tiles], dtype=np.int64)
     target = target_count(config.ratio, int(counts.sum()))
-    occupied = np.array([t.occupied for t in plan.tiles], dtype=np.int64)
-    weights = None
-    if config.method in EVEN_SPACING:  # tiles share out the points as one pass over the whole scan would
-        weights = scan_coverage(client, plan, slices, work, config, target, show_progress)
-    budgets = tile_budgets(counts, config.ratio, floors=occupied, weights=weights)  # floors: a point per occupied cell
+    weights, floors = None, np.minimum(counts, 1)  # no tile left empty
+    if config.method in EVEN_SPACING or config.method in HOLE_COVERED:
+        occupied, sizes = scan_coverage(client, plan, slices, work, config, target, show_progress)
+        if config.method in EVEN_SPACING:  # tiles share out the points as one pass over the whole scan would
+            weights = coverage_weights(occupied, sizes, target)
+        else:  # enough for a point in every voxel of the cover radius: a sparse tile can cover its holes
+            floors = np.ceil(coverage_weights(occupied, sizes, target, HOLE_COVERED[config.method])).astype(np.int64)
+    budgets = tile_budgets(counts, config.ratio, floors=floors, weights=weights)
     jobs = make_jobs(work, plan, slices, budgets, config)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]
     map_tasks(client, simplify_tile, pending, plan, desc="simplify", show_progress=show_progress,
@@ -178,16 +181,16 @@ COVERAGE_LEVELS = 2.0 ** np.arange(-4, 5)  # voxel sizes, relative to the 2-D sp
 
 
 def scan_coverage(client: Client, plan: TilePlan, slices: list[list[Slice]], work: WorkDir, config: RunConfig,
-                  target: int, show_progress: bool) -> np.ndarray:
-    """Per-tile weights for an even spacing over the whole scan: each tile's occupied voxels at the size
-    where the scan holds `target` of them (tiling.budgets.coverage_weights), from one read of each tile."""
+                  target: int, show_progress: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Each tile's occupied voxels (tiles, levels) at voxel sizes (levels,) around the spacing `target`
+    points give the scan (for tiling.budgets.coverage_weights), from one read of each tile."""
     cell_area = plan.grid.cell ** 2
     spacing = float(np.sqrt(sum(t.occupied for t in plan.tiles) * cell_area / max(target, 1)))
     sizes = tuple(float(s) for s in spacing * COVERAGE_LEVELS)
     jobs = [CoverageJob(str(work.store_path), tile_id, tuple(slices[tile_id]), chunk_cache_bytes(config), sizes)
             for tile_id in range(len(plan.tiles))]
     occupied = map_tasks(client, tile_coverage, jobs, plan, desc="measure coverage", show_progress=show_progress)
-    return coverage_weights(np.array(occupied), np.array(sizes), target)
+    return np.array(occupied), np.array(sizes)
 
 
 def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray,

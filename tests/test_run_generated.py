@@ -57,6 +57,41 @@ def test_no_near_duplicates_across_seams(tmp_path, dense_patch, method):
     assert cross_tile_close_pairs(tmp_path / "strict.zarr", 0.03) == 0
 
 
+def untiled_fps_gap(xyz: np.ndarray, count: int) -> float:
+    """Largest distance from a point to the nearest of `count` FPS picks over the whole cloud at once."""
+    from model import Tile, get_simplifier
+
+    tile = Tile(xyz - xyz.mean(0), np.ones(len(xyz), dtype=bool), np.zeros(3), seed=0)
+    kept = get_simplifier("fps")(tile, count).indices
+    return float(cKDTree(xyz[kept]).query(xyz)[0].max())
+
+
+def test_tiled_fps_covers_as_one_pass_would(tmp_path, dense_patch):
+    """Sixteen 4 m tiles: no hole along their seams, so the largest gap stays near one FPS over the patch."""
+    pipeline.run(dense_patch, tmp_path / "fps.las", ratio=0.05, method="fps", tile_size=4.0, workers=1)
+    scan, out = laspy.read(dense_patch), laspy.read(tmp_path / "fps.las")
+    xyz = np.column_stack([scan.x, scan.y, scan.z]) - [500_000, 4_000_000, 0]
+    kept = np.column_stack([out.x, out.y, out.z]) - [500_000, 4_000_000, 0]
+    gap = cKDTree(kept).query(xyz)[0].max()
+    assert gap <= 1.3 * untiled_fps_gap(xyz, len(kept))
+
+
+def test_fps_budgets_follow_area_not_point_count(tmp_path):
+    """Left half ten times denser than the right: tiled FPS keeps about as many points per m^2 on both
+    halves, as one pass would (budgets in proportion to counts would keep ten times more on the left)."""
+    rng = np.random.default_rng(3)
+    xy = np.concatenate([rng.uniform([0, 0], [8, 16], size=(50_000, 2)), rng.uniform([8, 0], [16, 16], size=(5_000, 2))])
+    header = laspy.LasHeader(version="1.2", point_format=3)
+    header.scales, header.offsets = [0.001] * 3, [500_000.0, 4_000_000.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = 500_000 + xy[:, 0], 4_000_000 + xy[:, 1], 0.01 * rng.normal(size=len(xy))
+    las.write(tmp_path / "two.las")
+    pipeline.run(tmp_path / "two.las", tmp_path / "fps.las", ratio=0.04, method="fps", tile_size=4.0, workers=1)
+    kept_x = laspy.read(tmp_path / "fps.las").x - 500_000
+    left, right = (kept_x < 8).sum(), (kept_x >= 8).sum()
+    assert left + right == 2_200 and 0.75 < left / right < 1.33
+
+
 def test_one_and_two_workers_give_identical_bytes(tmp_path, dense_patch):
     outputs = []
     for workers in (1, 2):
@@ -100,8 +135,10 @@ def test_toronto3d_ply_maps_to_point_format_7(tmp_path):
     assert las.header.version == "1.4" and las.header.point_format.id == 7
     assert len(las.points) == 5_000
     assert list(las.point_format.extra_dimension_names) == ["scalar_Reflectance"]
-    source = {(round(x * 1000), round(y * 1000)): i for i, (x, y) in enumerate(zip(vertex["x"], vertex["y"]))}
-    rows = [source[(round(x * 1000), round(y * 1000))] for x, y in zip(las.x, las.y)]
+    # matched by x, y and z on the mm grid: random points can share an x, y pair there
+    source = {(round(x * 1000), round(y * 1000), round(z * 1000)): i
+              for i, (x, y, z) in enumerate(zip(vertex["x"], vertex["y"], vertex["z"]))}
+    rows = [source[(round(x * 1000), round(y * 1000), round(z * 1000))] for x, y, z in zip(las.x, las.y, las.z)]
     src = vertex[rows]
     np.testing.assert_allclose(las.z, src["z"], atol=0.0006)
     np.testing.assert_array_equal(las.red, src["red"].astype(np.uint16) * 257)
