@@ -2,6 +2,7 @@
 
     python bench/quality.py [--scans autzen_trim.laz,street] [--ratios 0.2,0.1,0.05]
                             [--methods learned,stratified,fps,random,voxel] [--peer] [--out bench/results]
+                            [--name quality]
 
 For each scan and ratio, every method runs through `pipeline.run` (tiled, 2 workers, one cluster),
 and so does FPS over the whole scan as one tile ("fps untiled", the coverage reference) and, with
@@ -48,7 +49,7 @@ DEFAULT_DATA = HERE.parents[1] / "shared" / "data" / "lidar"
 SCANS = ("bcts_1.laz", "bcts_2.laz", "bcts_3.laz", "bcts_4.laz", "autzen_trim.laz", "lone-star.laz",
          "las_with_several_extra_byte_bloc.laz", "street")
 STREET_POINTS, STREET_SEED = 600_000, 3
-METHODS = ("learned", "stratified", "fps", "random", "voxel")
+METHODS = ("learned", "stratified-detail", "stratified", "paper", "fps", "random", "voxel")
 UNTILED, PEER = "fps untiled", "cloudcompare spatial"
 CELL_POINTS = 100  # scan points per density-map cell, on average over occupied cells
 STRUCTURE = ("building", "window", "kerb", "pole", "sign", "car", "utility_line")
@@ -177,7 +178,18 @@ def density_map(scan: str, ratio: float, xyz: np.ndarray, picks: dict[str, np.nd
         ax.set_xticks([]), ax.set_yticks([])
     figure.colorbar(image, ax=list(axes), shrink=0.8, label="log2 kept / expected")
     figure.suptitle(f"{scan} at {ratio:g}: kept-to-expected density, cells of {side:.3g} units", fontsize=10)
-    figure.savefig(path, dpi=80)
+    return save_small(figure, path, dpi=80)
+
+
+def save_small(figure: Figure, path: Path, dpi: int) -> Path:
+    """The figure as a 256-colour PNG: a third of the RGBA size, so the pictures can be committed."""
+    from io import BytesIO
+
+    from PIL import Image
+
+    buffer = BytesIO()
+    figure.savefig(buffer, dpi=dpi, format="png")
+    Image.open(buffer).convert("RGB").quantize(256).save(path, optimize=True)
     return path
 
 
@@ -221,11 +233,11 @@ def object_view(ratio: float, xyz: np.ndarray, masks: dict[str, np.ndarray], pic
         ax.set_title(f"{title} ({len(index):,} points)", fontsize=9)
         ax.set_aspect("equal")
     axes[0].legend(fontsize=7, markerscale=6, ncol=8, loc="upper right")
-    figure.savefig(path, dpi=90)
-    return path
+    return save_small(figure, path, dpi=90)
 
 
-def run_bench(scans: list[str], ratios: list[float], methods: list[str], peer: bool, data: Path, out: Path) -> None:
+def run_bench(scans: list[str], ratios: list[float], methods: list[str], peer: bool, data: Path, out: Path,
+              name: str = "quality") -> None:
     """Run everything, print and write the tables, draw the pictures."""
     pictures = out / "quality"
     pictures.mkdir(parents=True, exist_ok=True)
@@ -233,8 +245,8 @@ def run_bench(scans: list[str], ratios: list[float], methods: list[str], peer: b
     labels: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="quality-") as tmp, cluster(2, "2GB", None) as client:
         work = Path(tmp)
-        for name in scans:
-            path, las = load_scan(name, data, work)
+        for scan in scans:
+            path, las = load_scan(scan, data, work)
             xyz = xyz_of(las)
             xyz -= xyz.mean(axis=0)
             features = point_features(xyz)
@@ -250,16 +262,16 @@ def run_bench(scans: list[str], ratios: list[float], methods: list[str], peer: b
                 if peer and shutil.which("CloudCompare"):
                     picks[PEER] = cloudcompare_spatial(xyz, count, work)
                 for method, kept in picks.items():
-                    rows.append(score(name, ratio, method, xyz, kept, features))
+                    rows.append(score(scan, ratio, method, xyz, kept, features))
                     print(format_row(rows[-1]), flush=True)
-                stem = f"{Path(name).stem}-{ratio:g}"
-                density_map(name, ratio, xyz, picks, pictures / f"density-{stem}.png")
-                if name == "street":
+                stem = f"{Path(scan).stem}-{ratio:g}"
+                density_map(scan, ratio, xyz, picks, pictures / f"density-{stem}.png")
+                if scan == "street":
                     masks = street_labels(las)
                     labels += label_rows(ratio, xyz, masks, picks)
                     object_view(ratio, xyz, masks, picks, pictures / f"objects-{stem}.png")
-    (out / "quality.json").write_text(json.dumps({"rows": [asdict(r) for r in rows], "labels": labels}, indent=1))
-    (out / "quality.md").write_text(markdown(rows, labels))
+    (out / f"{name}.json").write_text(json.dumps({"rows": [asdict(r) for r in rows], "labels": labels}, indent=1))
+    (out / f"{name}.md").write_text(markdown(rows, labels))
     print(markdown(rows, labels))
 
 
@@ -271,7 +283,10 @@ def format_row(r: Row) -> str:
 
 def markdown(rows: list[Row], labels: list[dict]) -> str:
     """The metric table with each value's ratio to the best baseline (CE/RE/SDM) or to untiled FPS (CD, p99)."""
-    lines = ["| scan | ratio | method | CD | Hausdorff | p99 | CE | RE | SDM | NC | CD / untiled FPS | "
+    command = " ".join(["python bench/quality.py", *sys.argv[1:]])
+    lines = [f"# Quality per method\n\nMade by `{command}` (2 workers, every point scored; p99: 99th percentile "
+             "of the scan-to-result distance; lower is better everywhere).\n",
+             "| scan | ratio | method | CD | Hausdorff | p99 | CE | RE | SDM | NC | CD / untiled FPS | "
              "p99 / untiled FPS | CE / best baseline |", "|" + " --- |" * 13]
     for r in rows:
         group = [g for g in rows if g.scan == r.scan and g.ratio == r.ratio]
@@ -301,9 +316,10 @@ def main() -> None:
     parser.add_argument("--methods", default=",".join(METHODS))
     parser.add_argument("--peer", action="store_true", help="add CloudCompare's spatial subsampling (Debian cloudcompare)")
     parser.add_argument("--out", type=Path, default=HERE / "results")
+    parser.add_argument("--name", default="quality", help="stem of the .md and .json written to --out")
     args = parser.parse_args()
     run_bench(args.scans.split(","), [float(r) for r in args.ratios.split(",")], args.methods.split(","),
-              args.peer, args.data, args.out)
+              args.peer, args.data, args.out, args.name)
 
 
 if __name__ == "__main__":

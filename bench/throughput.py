@@ -2,7 +2,7 @@
 
     python bench/throughput.py [--data DIR] [--ratio 0.1] [--repeat 1]
 
-Runs each method (learned, fps, voxel, random) with 1 and 2 workers on bcts_1..4 (2.83 M points, one scan in four files), then
+Runs each method (learned, stratified, fps, voxel, random) with 1 and 2 workers on bcts_1..4 (2.83 M points, one scan in four files), then
 Open3D's voxel_down_sample on the same points and farthest_point_down_sample on bcts_1 alone (Open3D's
 FPS is O(N*M): on all 2.83 M points it would run for about 20 minutes here). Prints a Markdown table:
 end-to-end wall time of the whole command (imports, reading, writing included), the pipeline's own
@@ -22,7 +22,7 @@ from proctree import Measured, measure
 HERE = Path(__file__).resolve().parent
 DEFAULT_DATA = HERE.parents[1] / "shared" / "data" / "lidar"
 SUMMARY = re.compile(r"of ([\d,]+) points \((\d+) tiles, ([\d.]+) s")
-METHODS = ("learned", "fps", "voxel", "random")
+METHODS = ("learned", "stratified", "fps", "voxel", "random")
 
 
 def best(command: list[str], repeat: int) -> tuple[Measured, float]:

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from model.baselines import farthest_core_picks
+from model.checkpoint import load_trained
 from model.network import LearnedSimplifier, knn_graph, latent_fps, normalise, row_blocks
 from model.selection import Selection, Tile
 
@@ -20,11 +21,8 @@ PCA_SAMPLE = 4096  # about this many feature rows (an even stride) fix the princ
 @lru_cache(maxsize=2)
 def load_model(path: Path = WEIGHTS) -> LearnedSimplifier:
     """The network with trained weights, in inference mode, BatchNorm (running statistics) folded in."""
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no trained weights (train them with `pipeline train`)")
-    model = LearnedSimplifier()
-    model.load_state_dict(torch.load(path, map_location="cpu", weights_only=True)["state_dict"])
-    model.eval().projector.fold_batchnorm()
+    model = load_trained(LearnedSimplifier(), path, "pipeline train")
+    model.projector.fold_batchnorm()
     return model
 
 

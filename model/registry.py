@@ -3,18 +3,25 @@ from __future__ import annotations
 
 from model.baselines import fps_simplify, random_simplify, tcp_simplify, voxel_simplify
 from model.selection import Selection, Simplifier, Tile
-from model.stratified import COVER_SPACINGS, stratified_simplify
+from model.stratified import COVER_SPACINGS, measured_detail_simplify, stratified_simplify
 
 
 def learned_simplify(tile: Tile, budget: int) -> Selection:
-    """The trained network's latent-FPS picks at their measured positions; torch is imported on first use,
-    so other methods' workers never load it."""
+    """The default: the stratified fill weighted by the curvature loss the TOSCA-trained predictor expects
+    (model/detail.py); torch is imported on first use, so other methods' workers never load it."""
+    from model.detail import learned_detail_simplify
+
+    return learned_detail_simplify(tile, budget)
+
+
+def paper_simplify(tile: Tile, budget: int) -> Selection:
+    """The paper's network: latent-FPS picks at their measured positions (model/learned.py)."""
     from model.learned import learned_simplify as simplify
 
     return simplify(tile, budget)
 
 
-def learned_refined_simplify(tile: Tile, budget: int) -> Selection:
+def paper_refined_simplify(tile: Tile, budget: int) -> Selection:
     """The paper's whole model: the same picks, moved by the attention refinement (CD 1.5-3.2x higher on
     the TOSCA test split for the same CE; see the model card)."""
     from model.learned import learned_simplify as simplify
@@ -28,12 +35,14 @@ _SIMPLIFIERS: dict[str, Simplifier] = {
     "random": random_simplify,
     "tcp": tcp_simplify,
     "stratified": stratified_simplify,
+    "stratified-detail": measured_detail_simplify,
     "learned": learned_simplify,
-    "learned-refined": learned_refined_simplify,
+    "paper": paper_simplify,
+    "paper-refined": paper_refined_simplify,
 }
-LEARNED = ("learned", "learned-refined")
+PAPER = ("paper", "paper-refined")  # the paper's network: mesh mode gives its GNN the mesh adjacency
 EVEN_SPACING = ("fps", "voxel")  # methods that space points evenly: tile budgets follow covered volume, not counts
-HOLE_COVERED = {"stratified": COVER_SPACINGS}  # method -> cover radius in spacings: tile budgets hold a point per such voxel
+HOLE_COVERED = {"stratified": COVER_SPACINGS, "stratified-detail": COVER_SPACINGS, "learned": COVER_SPACINGS}  # method -> cover radius in spacings: tile budgets hold a point per such voxel
 METHODS = tuple(_SIMPLIFIERS)
 
 

@@ -21,7 +21,8 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from model.baselines import fps_simplify
-from model.geometry import morton_order
+from model.geometry import morton_order, point_features
+from model.metrics import nearest
 from model.selection import Selection, Tile, topped_up
 
 COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
@@ -29,20 +30,85 @@ COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings f
 
 def stratified_simplify(tile: Tile, budget: int) -> Selection:
     """`budget` core points: a stratified uniform fill, then the holes it leaves covered (see module doc)."""
+    return stratified_selection(tile, budget)
+
+
+def measured_detail_simplify(tile: Tile, budget: int) -> Selection:
+    """Stratified, with each point's keep weight 1 + its curvature loss over the mean (curvature_loss): the fill
+    keeps more where an even thinning would lose the mean curvature, as it is measured on this tile."""
+    budget = min(budget, tile.core_count)
+    if budget == 0:
+        return Selection.of(tile, np.empty(0, dtype=np.int64))
+    return stratified_selection(tile, budget, detail_weights(curvature_loss(tile, budget), tile.core))
+
+
+def stratified_selection(tile: Tile, budget: int, weights: np.ndarray | None = None) -> Selection:
+    """The fill and cover of the module doc; `weights` (n,) > 0 sets each point's relative chance to be in
+    the fill (None: equal chances)."""
     budget = min(budget, tile.core_count)
     if budget == 0:
         return Selection.of(tile, np.empty(0, dtype=np.int64))
     core = np.flatnonzero(tile.core)
-    curve = core[morton_order(tile.xyz[core])]  # core points along a Z-order curve
+    order = morton_order(tile.xyz[core])
+    curve = core[order]  # core points along a Z-order curve
+    curve_weights = None if weights is None else np.asarray(weights, dtype=np.float64)[curve]
     rng = np.random.default_rng(tile.seed)
     phase = rng.random()
-    trial = systematic_picks(curve, budget, phase)
+    trial = weighted_picks(curve, curve_weights, budget, phase)
     radius = COVER_SPACINGS * typical_spacing(tile.xyz[trial])
     holes = len(hole_cover(tile.xyz, trial, core, radius))
-    fill = systematic_picks(curve, budget - holes, phase)
-    cover = hole_cover(tile.xyz, fill, np.setdiff1d(core, fill, assume_unique=True), radius)[:holes]
+    fill = weighted_picks(curve, curve_weights, budget - holes, phase)
+    rest = tile.core.copy()
+    rest[fill] = False
+    cover = hole_cover(tile.xyz, fill, np.flatnonzero(rest), radius)[:holes]
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
     return Selection.of(tile, topped_up(order, core, budget, rng))
+
+
+def curvature_loss(tile: Tile, budget: int, phase: float = 0.5, here: np.ndarray | None = None) -> np.ndarray:
+    """(n,) |K(p) - K'(nearest pick)| per tile point: how far an even thinning to `budget` core points (the
+    stratified fill with equal weights, at `phase`) moves the mean curvature K that CE compares (K' on
+    the thinned cloud). It is what CE adds up, point by point, for that thinning. `here`: the tile's own
+    K, if already known."""
+    core = np.flatnonzero(tile.core)
+    fill = systematic_picks(core[morton_order(tile.xyz[core])], budget, phase)
+    here = point_features(tile.xyz).mean_curvature if here is None else here
+    thinned = point_features(tile.xyz[fill]).mean_curvature
+    return np.abs(here - thinned[nearest(tile.xyz[fill], tile.xyz).index])
+
+
+def detail_weights(loss: np.ndarray, core: np.ndarray) -> np.ndarray:
+    """Keep weights 1 + loss / mean core loss: equal parts an even share and a share following the loss."""
+    mean = float(loss[core].mean()) if core.any() else 0.0
+    return 1.0 + (loss / mean if mean > 0 else np.zeros_like(loss))
+
+
+def weighted_picks(curve: np.ndarray, weights: np.ndarray | None, count: int, phase: float) -> np.ndarray:
+    """`count` points along a curve, each kept with probability proportional to its weight (capped at 1),
+    by systematic sampling: the picks are the points whose cumulative probability crosses phase + j."""
+    if weights is None:
+        return systematic_picks(curve, count, phase)
+    if count <= 0:
+        return np.empty(0, dtype=np.int64)
+    cumulative = np.cumsum(keep_probabilities(weights, count))
+    positions = np.searchsorted(cumulative, phase + np.arange(count), side="right")
+    return curve[np.unique(np.minimum(positions, len(curve) - 1))]
+
+
+def keep_probabilities(weights: np.ndarray, count: int) -> np.ndarray:
+    """min(1, c * weights) with c such that they sum to `count` (<= len(weights))."""
+    probabilities = np.zeros(len(weights))
+    free = np.ones(len(weights), dtype=bool)
+    left = float(count)
+    while free.any():
+        probabilities[free] = weights[free] * (left / weights[free].sum())
+        full = free & (probabilities >= 1)
+        if not full.any():
+            break
+        probabilities[full] = 1.0
+        free &= ~full
+        left = count - float((~free).sum())  # the capped points each hold 1
+    return np.minimum(probabilities, 1.0)
 
 
 def systematic_picks(curve: np.ndarray, count: int, phase: float) -> np.ndarray:

@@ -16,7 +16,7 @@ import trimesh
 
 from model import Tile, get_simplifier
 from model.meshes import MESH_SUFFIXES, load_mesh, mesh_graph, mesh_name
-from model.registry import LEARNED
+from model.registry import PAPER
 from model.selection import kept_count
 from pipeline.atomic import atomic_output
 from pipeline.config import RunConfig
@@ -93,17 +93,17 @@ def read_mesh(path: Path) -> tuple[np.ndarray, np.ndarray]:
 def simplify_vertices(vertices: np.ndarray, faces: np.ndarray, method: str, count: int, seed: int) -> np.ndarray:
     """`count` kept vertex positions by `method`, the mesh treated as one centred tile of core points.
 
-    The learned method's GNN aggregates over the mesh adjacency (model.meshes.mesh_graph: 1-ring,
+    The paper's GNN (`paper`, `paper-refined`) aggregates over the mesh adjacency (model.meshes.mesh_graph: 1-ring,
     then 2-ring, then nearest vertices, 16 per row), as the paper does for meshes.
     """
     centre = vertices.mean(axis=0)
     tile = Tile(vertices - centre, np.ones(len(vertices), dtype=bool), centre, seed)
-    if method in LEARNED:
+    if method in PAPER:
         from model.learned import learned_simplify
         from model.network import GRAPH_NEIGHBOURS
 
         selection = learned_simplify(tile, count, graph=mesh_graph(tile.xyz, faces, GRAPH_NEIGHBOURS),
-                                     refine=method == "learned-refined")
+                                     refine=method == "paper-refined")
     else:
         selection = get_simplifier(method)(tile, count)
     return selection.xyz + centre

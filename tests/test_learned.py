@@ -37,7 +37,7 @@ def test_weights_ship_with_their_record():
 
 def test_exact_budget_deterministic_and_close_to_the_source():
     tile = street_tile()
-    learned = get_simplifier("learned")
+    learned = get_simplifier("paper")
     first = learned(tile, 500)
     assert len(first.indices) == 500 == len(np.unique(first.indices))
     assert tile.core[first.indices].all()
@@ -51,8 +51,8 @@ def test_exact_budget_deterministic_and_close_to_the_source():
 
 def test_refined_moves_the_same_picks_a_little():
     tile = street_tile()
-    picks = get_simplifier("learned")(tile, 500)
-    refined = get_simplifier("learned-refined")(tile, 500)
+    picks = get_simplifier("paper")(tile, 500)
+    refined = get_simplifier("paper-refined")(tile, 500)
     np.testing.assert_array_equal(refined.indices, picks.indices)
     moved = np.linalg.norm(refined.xyz - tile.xyz[refined.indices], axis=1)
     spacing = cKDTree(tile.xyz).query(tile.xyz, 2)[0][:, 1].mean()
@@ -65,7 +65,7 @@ def record_bytes(points: np.ndarray, skip: int = 0) -> np.ndarray:
         np.dtype((np.void, points.dtype.itemsize - skip))).ravel()
 
 
-@pytest.mark.parametrize("method", ["learned", "learned-refined"])
+@pytest.mark.parametrize("method", ["paper", "paper-refined"])
 def test_pipeline_run_learned_keeps_every_attribute(tmp_path, method):
     source_path = shared_file("autzen_trim.las")
     out = tmp_path / "learned.las"
@@ -74,7 +74,7 @@ def test_pipeline_run_learned_keeps_every_attribute(tmp_path, method):
     assert len(result.points) == int(np.floor(0.05 * len(source.points) + 0.5))
     # X, Y, Z are the first 12 bytes of every point format: unmoved picks are whole source records,
     # refined ones keep everything after X, Y, Z from a source point
-    skip = 0 if method == "learned" else 12
+    skip = 0 if method == "paper" else 12
     kept = record_bytes(result.points.array, skip)
     assert np.isin(kept, record_bytes(source.points.array, skip)).all()
     assert len(np.unique(kept)) == len(kept)

@@ -25,7 +25,7 @@ def sphere_off(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
-@pytest.mark.parametrize("method", ["learned", "fps"])
+@pytest.mark.parametrize("method", ["learned", "paper", "fps"])
 def test_mesh_mode_writes_every_kept_vertex_and_triangles(tmp_path, sphere_off, method):
     out = tmp_path / f"{method}.ply"
     result = CliRunner().invoke(pipeline_cli, ["run", str(sphere_off), "--ratio", "0.1", "--mesh", "-m", method,

@@ -82,7 +82,7 @@ def test_voxel_tops_up_when_points_are_duplicates():
     assert len(np.unique(selection.indices)) == 120
 
 
-@pytest.mark.parametrize("method", CLASSIC + ("tcp", "learned", "learned-refined"))
+@pytest.mark.parametrize("method", CLASSIC + ("tcp", "stratified-detail", "learned", "paper", "paper-refined"))
 @pytest.mark.parametrize("n", [1, 2, 3, 7, 9])
 def test_tiny_tiles(method, n):
     xyz = np.random.default_rng(n).uniform(size=(n, 3))

@@ -1,5 +1,6 @@
 """Stratified thinning: the scan's density pattern where it is dense, no hole where it is sparse."""
 import numpy as np
+import pytest
 from scipy.spatial import cKDTree
 
 from model import Tile, get_simplifier
@@ -17,10 +18,11 @@ def dense_beside_sparse(seed: int = 0) -> tuple[Tile, np.ndarray]:
     return Tile(xyz - xyz.mean(0), np.ones(len(xyz), bool), np.zeros(3), seed=4), is_sparse
 
 
-def test_dense_side_keeps_its_share_and_sparse_side_has_no_hole():
+@pytest.mark.parametrize("method", ["stratified", "learned"])
+def test_dense_side_keeps_its_share_and_sparse_side_has_no_hole(method):
     tile, is_sparse = dense_beside_sparse()
     budget = round(0.05 * len(tile.xyz))
-    kept = get_simplifier("stratified")(tile, budget).indices
+    kept = get_simplifier(method)(tile, budget).indices
     spacing = typical_spacing(tile.xyz[kept])
     # every sparse point lies within two output spacings of a pick; random leaves most of them farther
     gap = cKDTree(tile.xyz[kept]).query(tile.xyz[is_sparse])[0]

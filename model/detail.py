@@ -1,0 +1,93 @@
+"""The learned curvature-loss predictor behind `--method learned` (trained on TOSCA: model/detail_training.py).
+
+Why: CE, the paper's curvature error, adds up per point how far thinning moves the mean curvature;
+model/stratified.curvature_loss measures that for one even thinning of a tile, a noisy sample (another
+thinning's loss correlates with it only partly). A small network predicts the expected loss from that
+sample and descriptors of the full cloud, each invariant to translation and scale, and but for the
+measured sample to rotation (eigenvalue shares, curvature statistics over the neighbourhood, spacing
+ratios, the ratio kept), so
+absolute position in a tile, the unit of the scan and the tile's extent cannot leak in, as they do into
+the paper's latent features. Trained on TOSCA shapes sampled the way a scanner samples them. The
+prediction sets the stratified fill's keep weights 1 + loss / mean loss (model.stratified.detail_weights).
+"""
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from model.checkpoint import load_trained
+from model.geometry import bandwidth, curvature, knn, local_frames, mean_curvature, roughness
+from model.selection import Selection, Tile
+from model.stratified import curvature_loss, detail_weights, stratified_selection
+
+WEIGHTS = Path(__file__).resolve().parent / "weights" / "detail.pt"
+DESCRIPTORS = 12
+HIDDEN = 32
+NEIGHBOURS = 16
+
+
+def descriptors(tile: Tile, budget: int, phase: float = 0.5) -> np.ndarray:
+    """(n, 12) float32 per-point descriptors of a tile to be thinned to `budget` core points: curvature
+    kappa, the middle eigenvalue share, mean curvature, roughness, mean / std / max of kappa and std of
+    mean curvature over the 16 neighbours, the 1st and 8th neighbour distances over the 16th, log(ratio),
+    and the curvature loss of the even thinning at `phase` over its mean (model.stratified.curvature_loss:
+    a noisy sample of what is predicted). Unchanged by translation and scale; by rotation too, but for
+    the measured loss (the Morton curve, so the thinning measured, turns with the axes)."""
+    xyz = tile.xyz
+    nbrs = knn(xyz, NEIGHBOURS)
+    eigenvalues, _ = local_frames(xyz, nbrs)
+    kappa = curvature(eigenvalues)
+    kbar = mean_curvature(kappa, nbrs, bandwidth(nbrs))
+    total = eigenvalues.sum(axis=1)
+    middle = np.divide(eigenvalues[:, 1], total, out=np.zeros(len(total)), where=total > 0)
+    around = kappa[nbrs.indices]
+    distance = np.sqrt(nbrs.sq_dist.astype(np.float64))
+    far = np.where(distance[:, -1] > 0, distance[:, -1], 1.0)
+    measured = curvature_loss(tile, budget, phase, here=kbar)
+    columns = [kappa, middle, kbar, roughness(kappa, kbar), around.mean(axis=1), around.std(axis=1),
+               around.max(axis=1), kbar[nbrs.indices].std(axis=1), distance[:, min(1, nbrs.k - 1)] / far,
+               distance[:, nbrs.k // 2] / far, np.full(len(xyz), np.log(budget / tile.core_count)), relative(measured)]
+    return np.column_stack(columns).astype(np.float32)
+
+
+def relative(loss: np.ndarray, cap: float = 20.0) -> np.ndarray:
+    """A loss over its mean, capped (a few isolated points reach hundreds)."""
+    return np.minimum(loss / max(float(loss.mean()), 1e-12), cap) if len(loss) else loss
+
+
+class DetailNet(nn.Module):
+    """Descriptors (standardised by the training set's mean and deviation) -> predicted relative loss >= 0."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.register_buffer("shift", torch.zeros(DESCRIPTORS))
+        self.register_buffer("spread", torch.ones(DESCRIPTORS))
+        self.layers = nn.Sequential(nn.Linear(DESCRIPTORS, HIDDEN), nn.ReLU(), nn.Linear(HIDDEN, HIDDEN), nn.ReLU(),
+                                    nn.Linear(HIDDEN, 1), nn.Softplus())
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        return self.layers((features - self.shift) / self.spread).squeeze(-1)
+
+
+@lru_cache(maxsize=2)
+def load_detail_net(path: Path = WEIGHTS) -> DetailNet:
+    """The trained predictor in inference mode."""
+    return load_trained(DetailNet(), path, "pipeline train-detail")
+
+
+@torch.no_grad()
+def predicted_loss(tile: Tile, budget: int, path: Path = WEIGHTS) -> np.ndarray:
+    """(n,) expected curvature loss of each tile point, over the mean, for an even thinning to `budget`."""
+    return load_detail_net(path)(torch.from_numpy(descriptors(tile, budget))).numpy().astype(np.float64)
+
+
+def learned_detail_simplify(tile: Tile, budget: int, path: Path = WEIGHTS) -> Selection:
+    """Stratified fill and cover, the fill weighted by the predicted curvature loss (see module doc)."""
+    budget = min(budget, tile.core_count)
+    if budget == 0:
+        return Selection.of(tile, np.empty(0, dtype=np.int64))
+    return stratified_selection(tile, budget, detail_weights(predicted_loss(tile, budget, path), tile.core))

@@ -1,0 +1,97 @@
+"""The default `learned` method: a TOSCA-trained curvature-loss predictor weighting the stratified fill."""
+from __future__ import annotations
+
+import numpy as np
+import torch
+from scipy.spatial import cKDTree
+
+from model import Tile, get_simplifier
+from model.detail import WEIGHTS, descriptors, load_detail_net
+from model.learned import WEIGHTS as PAPER_WEIGHTS
+
+
+def edge_pole_plane(seed: int = 0) -> tuple[Tile, np.ndarray, np.ndarray]:
+    """A floor, a 5 m step up to a roof (a 90-degree edge), and a thin 6 m pole on the floor:
+    (tile, points within 0.3 m of the roof edge, pole points)."""
+    rng = np.random.default_rng(seed)
+    floor = np.column_stack([rng.uniform(0, 10, 20_000), rng.uniform(0, 20, 20_000), np.zeros(20_000)])
+    wall = np.column_stack([np.full(10_000, 10.0), rng.uniform(0, 20, 10_000), rng.uniform(0, 5, 10_000)])
+    roof = np.column_stack([rng.uniform(10, 20, 10_000), rng.uniform(0, 20, 10_000), np.full(10_000, 5.0)])
+    angle = rng.uniform(0, 2 * np.pi, 600)
+    pole = np.column_stack([5 + 0.06 * np.cos(angle), 10 + 0.06 * np.sin(angle), rng.uniform(0, 6, 600)])
+    xyz = np.concatenate([floor, wall, roof, pole])
+    xyz += rng.normal(0, 0.003, xyz.shape)
+    near_edge = (np.abs(xyz[:, 0] - 10) < 0.3) & (np.abs(xyz[:, 2] - 5) < 0.3)
+    on_pole = np.arange(len(xyz)) >= len(xyz) - len(pole)
+    return Tile(xyz - xyz.mean(0), np.ones(len(xyz), dtype=bool), np.zeros(3), seed=3), near_edge, on_pole
+
+
+def share_kept(kept: np.ndarray, mask: np.ndarray, ratio: float) -> float:
+    """Points of the mask kept, over ratio times its points (1 = a uniform thinning's share)."""
+    return float(np.isin(np.flatnonzero(mask), kept).sum() / mask.sum() / ratio)
+
+
+def test_default_keeps_the_edge_and_the_pole_where_uniform_thinning_does_not():
+    tile, near_edge, on_pole = edge_pole_plane()
+    ratio = 0.1
+    budget = round(ratio * len(tile.xyz))
+    learned = get_simplifier("learned")(tile, budget).indices
+    uniform = get_simplifier("random")(tile, budget).indices
+    assert len(learned) == budget and len(np.unique(learned)) == budget
+    assert share_kept(learned, near_edge, ratio) > 1.5 and share_kept(uniform, near_edge, ratio) < 1.25
+    assert share_kept(learned, on_pole, ratio) > 2.0 and share_kept(uniform, on_pole, ratio) < 1.5
+    pole_gap = {name: cKDTree(tile.xyz[kept]).query(tile.xyz[on_pole])[0].max()
+                for name, kept in (("learned", learned), ("uniform", uniform))}
+    assert pole_gap["learned"] < 0.7 * pole_gap["uniform"]
+
+
+def test_descriptors_do_not_depend_on_where_the_tile_is_or_its_unit():
+    """Translated and scaled (metres to feet): the same descriptors, the measured-loss column included."""
+    tile, _, _ = edge_pole_plane(1)
+    moved = Tile(tile.xyz * 3.28084 + [1250.0, -380.5, 42.0], tile.core, tile.centre, tile.seed)
+    here, there = descriptors(tile, 2_000), descriptors(moved, 2_000)
+    np.testing.assert_allclose(here[:, :11], there[:, :11], atol=2e-4)
+    assert np.mean(np.abs(here[:, 11] - there[:, 11]) < 1e-3) > 0.99  # Morton round-off may move a pick
+
+
+def test_descriptors_of_a_rotated_tile_agree_but_for_the_measured_thinning():
+    tile, _, _ = edge_pole_plane(2)
+    angle = 0.7
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    turned = Tile(tile.xyz @ rotation.T, tile.core, tile.centre, tile.seed)
+    np.testing.assert_allclose(descriptors(tile, 2_000)[:, :11], descriptors(turned, 2_000)[:, :11], atol=2e-4)
+
+
+def test_weights_ship_with_their_record_and_the_papers_split():
+    assert WEIGHTS.is_file() and WEIGHTS.stat().st_size < 200_000
+    record = torch.load(WEIGHTS, map_location="cpu", weights_only=False)["record"]
+    paper = torch.load(PAPER_WEIGHTS, map_location="cpu", weights_only=False)["record"]
+    assert record["train"] == paper["train"] and record["test"] == paper["test"]  # no test pose seen
+    assert record["history"][-1]["test_correlation"] > 0.5
+    assert not load_detail_net().training
+
+
+def test_training_on_generated_meshes_writes_weights_that_predict(tmp_path):
+    """A tiny run of the real training loop (two poses of three shapes) through the CLI command."""
+    import trimesh
+    from click.testing import CliRunner
+
+    from pipeline.cli import cli
+
+    shapes = {"ball": trimesh.creation.icosphere(3), "box": trimesh.creation.box((1, 2, 3)),
+              "can": trimesh.creation.cylinder(0.5, 2, sections=48)}
+    for name, mesh in shapes.items():
+        for pose in range(2):
+            mesh.apply_transform(trimesh.transformations.rotation_matrix(0.4 * pose, [0, 1, 0]))
+            mesh.export(tmp_path / f"{name}{pose}.off")
+    out = tmp_path / "detail.pt"
+    result = CliRunner().invoke(cli, ["train-detail", "--data", str(tmp_path), "--out", str(out), "--epochs", "2",
+                                      "--views", "1"])
+    assert result.exit_code == 0, result.output
+    record = torch.load(out, map_location="cpu", weights_only=False)["record"]
+    assert len(record["train"]) == 3 and len(record["test"]) == 3 and len(record["history"]) == 2
+    tile, _, _ = edge_pole_plane(4)
+    from model.detail import predicted_loss
+
+    loss = predicted_loss(tile, 2_000, out)
+    assert loss.shape == (len(tile.xyz),) and np.isfinite(loss).all() and (loss >= 0).all()
