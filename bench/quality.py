@@ -11,7 +11,7 @@ the surplus dropped at random; Debian's `cloudcompare`). Each result is scored a
 with every metric of model.metrics.quality and the 99th percentile of the scan-to-result distance.
 Pictures (PNG, under --out/quality/): per scan, a kept-to-expected density map per method (points
 kept per cell over ratio x points there, cells of ~100 scan points at the median; grey: under one expected) and, on the simulated
-street, a side view of labelled objects. On the street every label (and the simulator's finer parts:
+street, close-ups of a sign, a pole, a car and a kerb per method. On the street every label (and the simulator's finer parts:
 kerb, window, sign) is scored on its own: share of its points kept, and the 99th-percentile distance
 from its points to the nearest kept point, beside FPS's. Writes quality.md and quality.json.
 """
@@ -216,24 +216,27 @@ def label_rows(ratio: float, xyz: np.ndarray, masks: dict[str, np.ndarray], pick
 
 def object_view(ratio: float, xyz: np.ndarray, masks: dict[str, np.ndarray], picks: dict[str, np.ndarray],
                 path: Path) -> Path:
-    """Side views (x, z) of the street's first 40 m with a sign, pole, car and kerb: scan, then each method."""
-    x0 = float(np.quantile(xyz[masks["sign"], 0], 0.5)) - 20 if masks["sign"].any() else float(xyz[:, 0].min())
-    near = (xyz[:, 0] > x0) & (xyz[:, 0] < x0 + 40) & (xyz[:, 1] < np.quantile(xyz[:, 1], 0.5))
-    colours = {"building": "#999999", "window": "#3b6ea5", "kerb": "#d62728", "pole": "#2ca02c", "sign": "#ff7f0e",
-               "car": "#9467bd", "utility_line": "#000000", "natural": "#b5cf6b"}
-    panels = {"scan": np.flatnonzero(near), **{m: kept[near[kept]] for m, kept in picks.items()}}
-    figure = Figure(figsize=(12, 2.0 * len(panels)), layout="constrained")
-    axes = figure.subplots(len(panels), 1, squeeze=False, sharex=True)[:, 0]
-    for ax, (title, index) in zip(axes, panels.items()):
-        size = 0.3 if title == "scan" else 1.5
-        ax.scatter(xyz[index, 0], xyz[index, 2], s=size, c="#dddddd", linewidths=0)
-        for name, colour in colours.items():
-            chosen = index[masks[name][index]] if name in masks else index[:0]
-            ax.scatter(xyz[chosen, 0], xyz[chosen, 2], s=size * 2, c=colour, linewidths=0, label=name)
-        ax.set_title(f"{title} ({len(index):,} points)", fontsize=9)
-        ax.set_aspect("equal")
-    axes[0].legend(fontsize=7, markerscale=6, ncol=8, loc="upper right")
-    return save_small(figure, path, dpi=90)
+    """Close-ups of one sign, pole, car and kerb stretch (side views of a 6 m box around each): the scan in
+    the first row, each method below; the object's own points in colour, everything else grey."""
+    objects = [name for name in ("sign", "pole", "car", "kerb") if masks.get(name, np.zeros(1, bool)).any()]
+    rows = {"scan": np.arange(len(xyz)), **picks}
+    figure = Figure(figsize=(3.0 * len(objects), 1.9 * len(rows)), layout="constrained")
+    axes = figure.subplots(len(rows), len(objects), squeeze=False)
+    for column, name in enumerate(objects):
+        members = np.flatnonzero(masks[name])
+        centre = xyz[members[len(members) // 2]]  # one object: a point of it, and its surroundings
+        box = np.all(np.abs(xyz[:, :2] - centre[:2]) < 3.0, axis=1)
+        for row, (title, index) in enumerate(rows.items()):
+            ax = axes[row, column]
+            inside = index[box[index]]
+            own = inside[masks[name][inside]]
+            size = 0.4 if title == "scan" else 3.0
+            ax.scatter(xyz[inside, 0], xyz[inside, 2], s=size, c="#bbbbbb", linewidths=0)
+            ax.scatter(xyz[own, 0], xyz[own, 2], s=size * 1.5, c="#d62728", linewidths=0)
+            ax.set_aspect("equal")
+            ax.set_xticks([]), ax.set_yticks([])
+            ax.set_title(f"{name}: {title} ({len(own)} of its points)", fontsize=7)
+    return save_small(figure, path, dpi=80)
 
 
 def run_bench(scans: list[str], ratios: list[float], methods: list[str], peer: bool, data: Path, out: Path,
