@@ -3,11 +3,10 @@
 Why: CE, the paper's curvature error, adds up per point how far thinning moves the mean curvature;
 model/stratified.curvature_loss measures that for one even thinning of a tile, a noisy sample (another
 thinning's loss correlates with it only partly). A small network predicts the expected loss from that
-sample and descriptors of the full cloud, each invariant to translation and scale, and but for the
-measured sample to rotation (eigenvalue shares, curvature statistics over the neighbourhood, spacing
-ratios, the ratio kept), so
-absolute position in a tile, the unit of the scan and the tile's extent cannot leak in, as they do into
-the paper's latent features. Trained on TOSCA shapes sampled the way a scanner samples them. The
+sample and descriptors of the full cloud (eigenvalue shares, curvature statistics over the
+neighbourhood, spacing ratios, the ratio kept), invariant to translation and scale, and but for the
+measured sample to rotation, so absolute position in a tile, the unit of the scan and the tile's extent
+cannot leak in, as they do into the paper's latent features. Trained on TOSCA shapes sampled the way a scanner samples them. The
 prediction sets the stratified fill's keep weights 1 + loss / mean loss (model.stratified.detail_weights).
 """
 from __future__ import annotations
@@ -87,7 +86,5 @@ def predicted_loss(tile: Tile, budget: int, path: Path = WEIGHTS) -> np.ndarray:
 
 def learned_detail_simplify(tile: Tile, budget: int, path: Path = WEIGHTS) -> Selection:
     """Stratified fill and cover, the fill weighted by the predicted curvature loss (see module doc)."""
-    budget = min(budget, tile.core_count)
-    if budget == 0:
-        return Selection.of(tile, np.empty(0, dtype=np.int64))
-    return stratified_selection(tile, budget, detail_weights(predicted_loss(tile, budget, path), tile.core))
+    return stratified_selection(tile, budget, lambda tile, budget: detail_weights(predicted_loss(tile, budget, path),
+                                                                                 tile.core))

@@ -17,6 +17,8 @@ order, interleaved by rank), so a prefix is itself a spread-out, coarser result.
 """
 from __future__ import annotations
 
+from typing import Callable
+
 import numpy as np
 from pykdtree.kdtree import KDTree
 
@@ -36,22 +38,19 @@ def stratified_simplify(tile: Tile, budget: int) -> Selection:
 def measured_detail_simplify(tile: Tile, budget: int) -> Selection:
     """Stratified, with each point's keep weight 1 + its curvature loss over the mean (curvature_loss): the fill
     keeps more where an even thinning would lose the mean curvature, as it is measured on this tile."""
-    budget = min(budget, tile.core_count)
-    if budget == 0:
-        return Selection.of(tile, np.empty(0, dtype=np.int64))
-    return stratified_selection(tile, budget, detail_weights(curvature_loss(tile, budget), tile.core))
+    return stratified_selection(tile, budget, lambda tile, budget: detail_weights(curvature_loss(tile, budget), tile.core))
 
 
-def stratified_selection(tile: Tile, budget: int, weights: np.ndarray | None = None) -> Selection:
-    """The fill and cover of the module doc; `weights` (n,) > 0 sets each point's relative chance to be in
-    the fill (None: equal chances)."""
+def stratified_selection(tile: Tile, budget: int,
+                         weights_of: Callable[[Tile, int], np.ndarray] | None = None) -> Selection:
+    """The fill and cover of the module doc; `weights_of(tile, budget)` gives each point's relative chance
+    (n,) > 0 to be in the fill (None: equal chances). It is not called for an empty budget."""
     budget = min(budget, tile.core_count)
     if budget == 0:
         return Selection.of(tile, np.empty(0, dtype=np.int64))
     core = np.flatnonzero(tile.core)
-    order = morton_order(tile.xyz[core])
-    curve = core[order]  # core points along a Z-order curve
-    curve_weights = None if weights is None else np.asarray(weights, dtype=np.float64)[curve]
+    curve = core[morton_order(tile.xyz[core])]  # core points along a Z-order curve
+    curve_weights = None if weights_of is None else np.asarray(weights_of(tile, budget), dtype=np.float64)[curve]
     rng = np.random.default_rng(tile.seed)
     phase = rng.random()
     trial = weighted_picks(curve, curve_weights, budget, phase)

@@ -13,8 +13,8 @@ def tile_budgets(counts: np.ndarray, ratio: float, floors: np.ndarray | None = N
                  weights: np.ndarray | None = None) -> np.ndarray:
     """Integer budgets <= counts summing to target_count(ratio, counts.sum()): proportional to `weights`
     (the counts by default; coverage_weights for methods that space points evenly), never above a
-    tile's count and never below its floor (e.g. one point per occupied plan cell, so a sparse tile keeps
-    its area).
+    tile's count and never below its floor (the runner's: one point per non-empty tile, or what a
+    method's cover radius needs, so a sparse tile keeps its area).
 
     Quotas are min(count, max(floor, c * weight)) with c chosen so they sum to the target (floors scaled
     down if they alone exceed it); integers by the largest-remainder method, ties to the lower tile id.
