@@ -7,7 +7,7 @@ sample and descriptors of the full cloud (eigenvalue shares, curvature statistic
 neighbourhood, spacing ratios, the ratio kept), invariant to translation and scale, and but for the
 measured sample to rotation, so absolute position in a tile, the unit of the scan and the tile's extent
 cannot leak in, as they do into the paper's latent features. Trained on TOSCA shapes sampled the way a scanner samples them. The
-prediction sets the stratified fill's keep weights 1 + loss / mean loss (model.stratified.detail_weights).
+prediction sets the stratified fill's keep weights 1 + loss / mean loss (model.stratified.fill_weights).
 """
 from __future__ import annotations
 
@@ -20,8 +20,8 @@ from torch import nn
 
 from model.checkpoint import load_trained
 from model.geometry import bandwidth, curvature, knn, local_frames, mean_curvature, roughness
-from model.selection import Selection, Tile
-from model.stratified import curvature_loss, detail_weights, stratified_selection
+from model.selection import FillLoss, Selection, Tile
+from model.stratified import curvature_loss, stratified_selection
 
 WEIGHTS = Path(__file__).resolve().parent / "weights" / "detail.pt"
 DESCRIPTORS = 12
@@ -30,12 +30,18 @@ NEIGHBOURS = 16
 
 
 def descriptors(tile: Tile, budget: int, phase: float = 0.5) -> np.ndarray:
+    """(n, 12) float32 per-point descriptors of a tile (see described)."""
+    return described(tile, budget, phase)[0]
+
+
+def described(tile: Tile, budget: int, phase: float = 0.5) -> tuple[np.ndarray, float]:
     """(n, 12) float32 per-point descriptors of a tile to be thinned to `budget` core points: curvature
     kappa, the middle eigenvalue share, mean curvature, roughness, mean / std / max of kappa and std of
     mean curvature over the 16 neighbours, the 1st and 8th neighbour distances over the 16th, log(ratio),
     and the curvature loss of the even thinning at `phase` over its mean (model.stratified.curvature_loss:
     a noisy sample of what is predicted). Unchanged by translation and scale; by rotation too, but for
-    the measured loss (the Morton curve, so the thinning measured, turns with the axes)."""
+    the measured loss (the Morton curve, so the thinning measured, turns with the axes). Also the
+    measured loss's mean (K units): the scale that the relative prediction is read against."""
     xyz = tile.xyz
     nbrs = knn(xyz, NEIGHBOURS)
     eigenvalues, _ = local_frames(xyz, nbrs)
@@ -50,7 +56,7 @@ def descriptors(tile: Tile, budget: int, phase: float = 0.5) -> np.ndarray:
     columns = [kappa, middle, kbar, roughness(kappa, kbar), around.mean(axis=1), around.std(axis=1),
                around.max(axis=1), kbar[nbrs.indices].std(axis=1), distance[:, min(1, nbrs.k - 1)] / far,
                distance[:, nbrs.k // 2] / far, np.full(len(xyz), np.log(budget / tile.core_count)), relative(measured)]
-    return np.column_stack(columns).astype(np.float32)
+    return np.column_stack(columns).astype(np.float32), float(measured.mean()) if len(measured) else 0.0
 
 
 def relative(loss: np.ndarray, cap: float = 20.0) -> np.ndarray:
@@ -81,10 +87,22 @@ def load_detail_net(path: Path = WEIGHTS) -> DetailNet:
 @torch.no_grad()
 def predicted_loss(tile: Tile, budget: int, path: Path = WEIGHTS) -> np.ndarray:
     """(n,) expected curvature loss of each tile point, over the mean, for an even thinning to `budget`."""
-    return load_detail_net(path)(torch.from_numpy(descriptors(tile, budget))).numpy().astype(np.float64)
+    return predicted_fill_loss(tile, budget, path).relative
+
+
+@torch.no_grad()
+def predicted_fill_loss(tile: Tile, budget: int, path: Path = WEIGHTS) -> FillLoss:
+    """The expected loss over its core mean, and that mean in K units (the measured mean times the
+    prediction's core mean, since the network predicts relative to the measured mean)."""
+    features, measured_level = described(tile, budget)
+    predicted = load_detail_net(path)(torch.from_numpy(features)).numpy().astype(np.float64)
+    core_mean = float(predicted[tile.core].mean()) if tile.core.any() else 0.0
+    if core_mean <= 0:
+        return FillLoss(np.zeros_like(predicted), 0.0)
+    return FillLoss(predicted / core_mean, core_mean * measured_level)
 
 
 def learned_detail_simplify(tile: Tile, budget: int, path: Path = WEIGHTS) -> Selection:
-    """Stratified fill and cover, the fill weighted by the predicted curvature loss (see module doc)."""
-    return stratified_selection(tile, budget, lambda tile, budget: detail_weights(predicted_loss(tile, budget, path),
-                                                                                 tile.core))
+    """Stratified fill and cover, the fill weighted by the predicted curvature loss (see module doc); a
+    run's `tile.context` holds the prediction made in its survey, so none is made here then."""
+    return stratified_selection(tile, budget, lambda tile, budget: predicted_fill_loss(tile, budget, path))

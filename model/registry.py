@@ -2,8 +2,8 @@
 from __future__ import annotations
 
 from model.baselines import fps_simplify, random_simplify, tcp_simplify, voxel_simplify
-from model.selection import Selection, Simplifier, Tile
-from model.stratified import COVER_SPACINGS, measured_detail_simplify, stratified_simplify
+from model.selection import FillLoss, Selection, Simplifier, Tile
+from model.stratified import LossOf, measured_detail_simplify, measured_loss, no_loss, stratified_simplify
 
 
 def learned_simplify(tile: Tile, budget: int) -> Selection:
@@ -12,6 +12,13 @@ def learned_simplify(tile: Tile, budget: int) -> Selection:
     from model.detail import learned_detail_simplify
 
     return learned_detail_simplify(tile, budget)
+
+
+def learned_loss(tile: Tile, budget: int) -> FillLoss:
+    """The default's fill weights: the predicted curvature loss (model/detail.py), torch imported on first use."""
+    from model.detail import predicted_fill_loss
+
+    return predicted_fill_loss(tile, budget)
 
 
 def paper_simplify(tile: Tile, budget: int) -> Selection:
@@ -42,7 +49,9 @@ _SIMPLIFIERS: dict[str, Simplifier] = {
 }
 PAPER = ("paper", "paper-refined")  # the paper's network: mesh mode gives its GNN the mesh adjacency
 EVEN_SPACING = ("fps", "voxel")  # methods that space points evenly: tile budgets follow covered volume, not counts
-HOLE_COVERED = {"stratified": COVER_SPACINGS, "stratified-detail": COVER_SPACINGS, "learned": COVER_SPACINGS}  # method -> cover radius in spacings: tile budgets hold a point per such voxel
+FILL_LOSSES: dict[str, LossOf] = {"stratified": no_loss, "stratified-detail": measured_loss, "learned": learned_loss}
+"""Stratified methods and their fill weights: a run surveys every tile first, so weights, cover radius
+and tile budgets are set for the whole scan (model.selection.FillContext), as one pass over it would."""
 METHODS = tuple(_SIMPLIFIERS)
 
 

@@ -8,17 +8,42 @@ import numpy as np
 
 
 @dataclass(frozen=True)
+class FillLoss:
+    """Where a tile's fill should keep more: each point's curvature loss over the tile's mean, and that mean.
+
+    relative: (n,) >= 0, or None for equal chances; level: the mean absolute loss (K units), which
+    makes tiles comparable, so a run can weigh tile against tile as one pass over the scan would."""
+
+    relative: np.ndarray | None
+    level: float
+
+
+@dataclass(frozen=True)
+class FillContext:
+    """What the whole scan decides for one tile's fill (a pipeline run sets it from every tile's survey).
+
+    Keep weights are 1 + detail_scale * loss.relative (detail_scale: the tile's loss level over the
+    scan's); holes are points farther than cover_radius (scan units) from every pick."""
+
+    loss: FillLoss
+    detail_scale: float
+    cover_radius: float
+
+
+@dataclass(frozen=True)
 class Tile:
     """A tile as a simplifier sees it: centred xyz of core and halo points, and which are core.
 
     `centre` is what was subtracted (scan coordinates = xyz + centre), so a method can align a grid
-    across tiles; `seed` is the tile's own seed, fixed by the run seed and the tile id.
+    across tiles; `seed` is the tile's own seed, fixed by the run seed and the tile id; `context`, what
+    a run decided for this tile from every tile's survey (None for a tile on its own).
     """
 
     xyz: np.ndarray
     core: np.ndarray
     centre: np.ndarray
     seed: int
+    context: FillContext | None = None
 
     @property
     def core_count(self) -> int:

@@ -25,36 +25,55 @@ from pykdtree.kdtree import KDTree
 from model.baselines import fps_simplify
 from model.geometry import morton_order, point_features
 from model.metrics import nearest
-from model.selection import Selection, Tile, topped_up
+from model.selection import FillContext, FillLoss, Selection, Tile, topped_up
 
 COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
+SPACING_QUANTILES = np.linspace(0.0, 1.0, 65)  # a tile reports its picks' spacing as these quantiles
+
+
+LossOf = Callable[[Tile, int], FillLoss]
+
+
+def no_loss(tile: Tile, budget: int) -> FillLoss:
+    """Equal chances for every point: the plain stratified fill."""
+    return FillLoss(None, 0.0)
+
+
+def measured_loss(tile: Tile, budget: int) -> FillLoss:
+    """The curvature loss of one even thinning of the tile itself (curvature_loss), over its mean."""
+    loss = curvature_loss(tile, budget)
+    level = float(loss[tile.core].mean()) if tile.core.any() else 0.0
+    return FillLoss(loss / level if level > 0 else np.zeros_like(loss), level)
 
 
 def stratified_simplify(tile: Tile, budget: int) -> Selection:
     """`budget` core points: a stratified uniform fill, then the holes it leaves covered (see module doc)."""
-    return stratified_selection(tile, budget)
+    return stratified_selection(tile, budget, no_loss)
 
 
 def measured_detail_simplify(tile: Tile, budget: int) -> Selection:
     """Stratified, with each point's keep weight 1 + its curvature loss over the mean (curvature_loss): the fill
     keeps more where an even thinning would lose the mean curvature, as it is measured on this tile."""
-    return stratified_selection(tile, budget, lambda tile, budget: detail_weights(curvature_loss(tile, budget), tile.core))
+    return stratified_selection(tile, budget, measured_loss)
 
 
-def stratified_selection(tile: Tile, budget: int,
-                         weights_of: Callable[[Tile, int], np.ndarray] | None = None) -> Selection:
-    """The fill and cover of the module doc; `weights_of(tile, budget)` gives each point's relative chance
-    (n,) > 0 to be in the fill (None: equal chances). It is not called for an empty budget."""
+def stratified_selection(tile: Tile, budget: int, loss_of: LossOf) -> Selection:
+    """The fill and cover of the module doc. For a tile on its own (no `tile.context`), `loss_of(tile,
+    budget)` sets the keep weights 1 + relative loss and the cover radius is COVER_SPACINGS typical
+    spacings of a trial fill; a pipeline run's context holds the scan-wide weights and radius instead."""
+    context = tile.context
     budget = min(budget, tile.core_count)
     if budget == 0:
         return Selection.of(tile, np.empty(0, dtype=np.int64))
     core = np.flatnonzero(tile.core)
     curve = core[morton_order(tile.xyz[core])]  # core points along a Z-order curve
-    curve_weights = None if weights_of is None else np.asarray(weights_of(tile, budget), dtype=np.float64)[curve]
     rng = np.random.default_rng(tile.seed)
     phase = rng.random()
+    weights = fill_weights(loss_of(tile, budget), 1.0) if context is None else fill_weights(context.loss,
+                                                                                             context.detail_scale)
+    curve_weights = curve_of(weights, curve)
     trial = weighted_picks(curve, curve_weights, budget, phase)
-    radius = COVER_SPACINGS * typical_spacing(tile.xyz[trial])
+    radius = COVER_SPACINGS * typical_spacing(tile.xyz[trial]) if context is None else context.cover_radius
     holes = len(hole_cover(tile.xyz, trial, core, radius))
     fill = weighted_picks(curve, curve_weights, budget - holes, phase)
     rest = tile.core.copy()
@@ -62,6 +81,30 @@ def stratified_selection(tile: Tile, budget: int,
     cover = hole_cover(tile.xyz, fill, np.flatnonzero(rest), radius)[:holes]
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
     return Selection.of(tile, topped_up(order, core, budget, rng))
+
+
+def fill_weights(loss: FillLoss, detail_scale: float) -> np.ndarray | None:
+    """(n,) keep weights 1 + detail_scale * relative loss: an even share plus a share following the loss
+    (None: equal weights)."""
+    return None if loss.relative is None else 1.0 + detail_scale * loss.relative
+
+
+def curve_of(weights: np.ndarray | None, curve: np.ndarray) -> np.ndarray | None:
+    """The weights of the points in curve order (None stays None)."""
+    return None if weights is None else weights[curve]
+
+
+def pick_spacings(tile: Tile, budget: int, loss: FillLoss) -> np.ndarray:
+    """(len(SPACING_QUANTILES),) quantiles of the nearest-pick distance among the picks of a trial fill
+    to `budget` (empty below two picks): pooled over tiles, the scan's typical output spacing."""
+    budget = min(budget, tile.core_count)
+    if budget < 2:
+        return np.empty(0)
+    core = np.flatnonzero(tile.core)
+    curve = core[morton_order(tile.xyz[core])]
+    picks = tile.xyz[weighted_picks(curve, curve_of(fill_weights(loss, 1.0), curve), budget, 0.5)]
+    distance, _ = KDTree(np.ascontiguousarray(picks, dtype=np.float64)).query(picks, k=2)
+    return np.quantile(distance[:, 1], SPACING_QUANTILES)
 
 
 def curvature_loss(tile: Tile, budget: int, phase: float = 0.5, here: np.ndarray | None = None) -> np.ndarray:
@@ -74,12 +117,6 @@ def curvature_loss(tile: Tile, budget: int, phase: float = 0.5, here: np.ndarray
     here = point_features(tile.xyz).mean_curvature if here is None else here
     thinned = point_features(tile.xyz[fill]).mean_curvature
     return np.abs(here - thinned[nearest(tile.xyz[fill], tile.xyz).index])
-
-
-def detail_weights(loss: np.ndarray, core: np.ndarray) -> np.ndarray:
-    """Keep weights 1 + loss / mean core loss: equal parts an even share and a share following the loss."""
-    mean = float(loss[core].mean()) if core.any() else 0.0
-    return 1.0 + (loss / mean if mean > 0 else np.zeros_like(loss))
 
 
 def weighted_picks(curve: np.ndarray, weights: np.ndarray | None, count: int, phase: float) -> np.ndarray:

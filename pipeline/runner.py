@@ -12,18 +12,19 @@ from typing import Iterator, Sequence
 import numpy as np
 from dask.distributed import Client
 
-from model.registry import EVEN_SPACING, HOLE_COVERED
+from model.registry import EVEN_SPACING, FILL_LOSSES
+from model.stratified import COVER_SPACINGS
 from pipeline.config import RunConfig, parse_size
 from pipeline.crs import crs_wkt
 from pipeline.errors import PipelineError
 from pipeline.atomic import remove_stale_temporaries
 from pipeline.execute import cluster, map_tasks
 from pipeline.scan import Piece, Scan
-from pipeline.tasks import CoverageJob, TileJob, bucket_piece, simplify_tile, tile_coverage
+from pipeline.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, simplify_tile, survey_tile
 from pipeline.validate import check_run
 from pipeline.workdir import WorkDir
 from pipeline.writers import OUTPUT_SUFFIXES, OutputMeta, TilePart, write_output
-from tiling.budgets import coverage_weights, target_count, tile_budgets
+from tiling.budgets import coverage_weights, pooled_median, saliency_weights, target_count, tile_budgets
 from tiling.bucket import row_ranges
 from tiling.plan import DensityGrid, TilePlan, plan_tiles
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
@@ -113,15 +114,17 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, cl
     clock.lap("read and bucket")
     counts = np.array([t.count for t in plan.tiles], dtype=np.int64)
     target = target_count(config.ratio, int(counts.sum()))
-    weights, floors = None, np.minimum(counts, 1)  # no tile left empty
-    if config.method in EVEN_SPACING or config.method in HOLE_COVERED:
-        occupied, sizes = scan_coverage(client, plan, slices, work, config, target, show_progress)
+    weights, floors, fill = None, np.minimum(counts, 1), None  # no tile left empty
+    if config.method in EVEN_SPACING or config.method in FILL_LOSSES:
+        surveys, sizes = survey_scan(client, plan, slices, work, config, target, show_progress)
+        occupied = np.array([survey.occupied for survey in surveys])
         if config.method in EVEN_SPACING:  # tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
-        else:  # enough for a point in every voxel of the cover radius: a sparse tile can cover its holes
-            floors = np.ceil(coverage_weights(occupied, sizes, target, HOLE_COVERED[config.method])).astype(np.int64)
+        else:  # a point in every voxel of the cover radius, so a sparse tile can cover its holes; saliency shared
+            floors = np.ceil(coverage_weights(occupied, sizes, target, COVER_SPACINGS)).astype(np.int64)
+            weights, fill = scan_fill(surveys)
     budgets = tile_budgets(counts, config.ratio, floors=floors, weights=weights)
-    jobs = make_jobs(work, plan, slices, budgets, config)
+    jobs = make_jobs(work, plan, slices, budgets, config, fill)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]
     map_tasks(client, simplify_tile, pending, plan, desc="simplify", show_progress=show_progress,
               weight=lambda outcome: outcome.points)
@@ -180,21 +183,43 @@ def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], work: WorkDir, 
 COVERAGE_LEVELS = 2.0 ** np.arange(-4, 5)  # voxel sizes, relative to the 2-D spacing estimate
 
 
-def scan_coverage(client: Client, plan: TilePlan, slices: list[list[Slice]], work: WorkDir, config: RunConfig,
-                  target: int, show_progress: bool) -> tuple[np.ndarray, np.ndarray]:
-    """Each tile's occupied voxels (tiles, levels) at voxel sizes (levels,) around the spacing `target`
-    points give the scan (for tiling.budgets.coverage_weights), from one read of each tile."""
+@dataclass(frozen=True)
+class ScanFill:
+    """The scan-wide settings of a stratified method's tiles: (tiles,) detail scales and the hole radius."""
+
+    detail_scales: np.ndarray
+    cover_radius: float
+
+
+def survey_scan(client: Client, plan: TilePlan, slices: list[list[Slice]], work: WorkDir, config: RunConfig,
+                target: int, show_progress: bool) -> tuple[list[TileSurvey], np.ndarray]:
+    """Every tile's survey (those an earlier attempt finished are read back) and the voxel sizes (levels,)
+    around the spacing `target` points give the scan, at which each counted its occupied voxels."""
     cell_area = plan.grid.cell ** 2
     spacing = float(np.sqrt(sum(t.occupied for t in plan.tiles) * cell_area / max(target, 1)))
     sizes = tuple(float(s) for s in spacing * COVERAGE_LEVELS)
-    jobs = [CoverageJob(str(work.store_path), tile_id, tuple(slices[tile_id]), chunk_cache_bytes(config), sizes)
+    jobs = [SurveyJob(str(work.store_path), str(work.survey_path(tile_id)), tile_id, tuple(slices[tile_id]),
+                      config.overlap, chunk_cache_bytes(config), sizes, config.method, config.ratio, config.seed)
             for tile_id in range(len(plan.tiles))]
-    occupied = map_tasks(client, tile_coverage, jobs, plan, desc="measure coverage", show_progress=show_progress)
-    return np.array(occupied), np.array(sizes)
+    pending = [job for job in jobs if not Path(job.survey_path).is_file()]
+    fresh = dict(zip((job.tile_id for job in pending),
+                     map_tasks(client, survey_tile, pending, plan, desc="survey tiles", show_progress=show_progress)))
+    surveys = [fresh[job.tile_id] if job.tile_id in fresh else load_survey(Path(job.survey_path)) for job in jobs]
+    return surveys, np.array(sizes)
+
+
+def scan_fill(surveys: list[TileSurvey]) -> tuple[np.ndarray, ScanFill]:
+    """Tile weights for the budgets and the fill settings that make tiles keep points as one stratified
+    pass over the whole scan would: weights 1 + loss / the scan's mean loss, and a hole radius of
+    COVER_SPACINGS times the scan's typical pick spacing."""
+    weights, scales = saliency_weights(np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys]),
+                                       np.array([s.loss_sum for s in surveys]))
+    spacing = pooled_median([s.spacings for s in surveys], np.array([s.picks for s in surveys]))
+    return weights, ScanFill(scales, COVER_SPACINGS * spacing)
 
 
 def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray,
-              config: RunConfig) -> list[TileJob]:
+              config: RunConfig, fill: ScanFill | None = None) -> list[TileJob]:
     """One job per tile with a non-zero budget, in tile order: neighbours share pieces, so caches stay warm."""
     jobs = []
     for tile_id, tile in enumerate(plan.tiles):
@@ -202,8 +227,12 @@ def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets:
         if budget == 0:
             continue
         reserve = min(tile.count - budget, max(RESERVE_MIN, int(np.ceil(RESERVE_SHARE * budget))))
+        surveyed = {} if fill is None else dict(survey_path=str(work.survey_path(tile_id)),
+                                                 detail_scale=float(fill.detail_scales[tile_id]),
+                                                 cover_radius=fill.cover_radius)
         jobs.append(TileJob(str(work.store_path), str(work.tile_path(tile_id)), tile_id, tuple(slices[tile_id]),
-                            config.overlap, chunk_cache_bytes(config), budget, reserve, config.method, config.seed))
+                            config.overlap, chunk_cache_bytes(config), budget, reserve, config.method, config.seed,
+                            **surveyed))
     return jobs
 
 

@@ -1,4 +1,4 @@
-"""The work Dask workers do: bucket a piece into the store (counting its density), simplify a tile.
+"""The work Dask workers do: bucket a piece into the store (counting its density), survey a tile, simplify a tile.
 
 Each function takes plain picklable data and touches only its own piece or tile, so any worker of a
 local or remote cluster can run it, in any order, with the same result.
@@ -12,10 +12,13 @@ from pathlib import Path
 import numpy as np
 
 from model import Tile, get_simplifier
+from model.registry import FILL_LOSSES
+from model.selection import FillContext, FillLoss
+from model.stratified import pick_spacings
 from pipeline.scan import Piece, Scan, scaled_xyz
 from pipeline.workdir import WorkDir, save_npz, write_atomically
 from tiling.bucket import bucket_by_cell
-from tiling.budgets import occupied_voxels
+from tiling.budgets import occupied_voxels, target_count
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, TileStore
 
@@ -34,6 +37,9 @@ class TileJob:
     reserve: int
     method: str
     seed: int
+    survey_path: str | None = None  # a stratified method's survey of this tile (its fill loss)
+    detail_scale: float = 0.0       # the tile's loss level over the scan's (model.selection.FillContext)
+    cover_radius: float = 0.0       # the scan-wide hole radius, scan units
 
 
 @dataclass(frozen=True)
@@ -68,36 +74,86 @@ def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     Rows are positions in what `TileStore.load(job.slices)` returns, so the stitch can fetch the records.
     """
     started = time.perf_counter()
-    store = TileStore.open(Path(job.store_path))
-    attrs = store.attrs
-    xyz = scaled_xyz(store.load(job.slices, job.cache_bytes).records, np.asarray(attrs["scales"]),
-                     np.asarray(attrs["offsets"]))
-    core = plan.core_mask(job.tile_id, xyz)
-    seen = np.flatnonzero(plan.halo_mask(core, job.tile_id, xyz, job.overlap))
-    xyz, core = xyz[seen], core[seen]
-    centre = xyz[core].mean(axis=0)
-    tile = Tile(xyz - centre, core, centre, tile_seed(job.seed, job.tile_id))
+    tile, seen = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap, job.seed)
+    if job.survey_path is not None:
+        loss = load_fill_loss(Path(job.survey_path))
+        tile = Tile(tile.xyz, tile.core, tile.centre, tile.seed, FillContext(loss, job.detail_scale, job.cover_radius))
     selection = get_simplifier(job.method)(tile, min(job.budget + job.reserve, tile.core_count))
     write_atomically(Path(job.result_path),
-                     lambda tmp: save_npz(tmp, rows=seen[selection.indices], xyz=selection.xyz + centre))
-    return TileOutcome(job.tile_id, len(xyz), len(selection.indices), time.perf_counter() - started)
+                     lambda tmp: save_npz(tmp, rows=seen[selection.indices], xyz=selection.xyz + tile.centre))
+    return TileOutcome(job.tile_id, len(tile.xyz), len(selection.indices), time.perf_counter() - started)
+
+
+def load_tile(store_path: str, slices: tuple[Slice, ...], cache_bytes: int, plan: TilePlan, tile_id: int,
+              overlap: float, run_seed: int) -> tuple[Tile, np.ndarray]:
+    """A tile's core and halo points, centred on the core's mean, and their rows in what the slices load."""
+    store = TileStore.open(Path(store_path))
+    attrs = store.attrs
+    xyz = scaled_xyz(store.load(slices, cache_bytes).records, np.asarray(attrs["scales"]), np.asarray(attrs["offsets"]))
+    core = plan.core_mask(tile_id, xyz)
+    seen = np.flatnonzero(plan.halo_mask(core, tile_id, xyz, overlap))
+    xyz, core = xyz[seen], core[seen]
+    centre = xyz[core].mean(axis=0) if core.any() else np.zeros(3)
+    return Tile(xyz - centre, core, centre, tile_seed(run_seed, tile_id)), seen
 
 
 @dataclass(frozen=True)
-class CoverageJob:
-    """One tile's points to count occupied voxels of, at each of `sizes` (scan units)."""
+class SurveyJob:
+    """One tile to survey before budgets are set: its occupied voxels at each of `sizes` (scan units),
+    and for a stratified method its fill loss (saved to survey_path) and pick spacing."""
 
     store_path: str
+    survey_path: str
     tile_id: int
     slices: tuple[Slice, ...]
+    overlap: float
     cache_bytes: int
     sizes: tuple[float, ...]
+    method: str
+    ratio: float
+    seed: int
 
 
-def tile_coverage(job: CoverageJob, plan: TilePlan) -> np.ndarray:
-    """Occupied voxels of the tile's core points at each size: what a scan-wide even spacing gives it."""
-    store = TileStore.open(Path(job.store_path))
-    xyz = scaled_xyz(store.load(job.slices, job.cache_bytes).records, np.asarray(store.attrs["scales"]),
-                     np.asarray(store.attrs["offsets"]))
-    core = xyz[plan.core_mask(job.tile_id, xyz)]
-    return occupied_voxels(core, np.asarray(job.sizes))  # voxels count from the points' minimum: no centring needed
+@dataclass(frozen=True)
+class TileSurvey:
+    """What a tile tells the run: occupied voxels (levels,), its core count, mean absolute fill loss,
+    the relative loss summed over the core, and (quantiles,) spacings of a trial fill's picks, of `picks`."""
+
+    occupied: np.ndarray
+    core_count: int
+    level: float
+    loss_sum: float
+    spacings: np.ndarray
+    picks: int
+
+
+def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
+    """Measure one tile at the scan's ratio and keep the measurement in the work folder (a resumed run reads it)."""
+    tile, _ = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap, job.seed)
+    occupied = occupied_voxels(tile.xyz[tile.core], np.asarray(job.sizes))
+    budget = target_count(job.ratio, tile.core_count)
+    loss, spacings = FillLoss(None, 0.0), np.empty(0)
+    if job.method in FILL_LOSSES and budget > 0:
+        loss = FILL_LOSSES[job.method](tile, budget)
+        spacings = pick_spacings(tile, budget, loss)
+    loss_sum = float(loss.relative[tile.core].sum()) if loss.relative is not None else 0.0
+    survey = TileSurvey(occupied, tile.core_count, loss.level, loss_sum, spacings, budget)
+    arrays = {} if loss.relative is None else {"relative": loss.relative.astype(np.float32)}
+    write_atomically(Path(job.survey_path), lambda tmp: save_npz(
+        tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
+        spacings=spacings, picks=budget, **arrays))
+    return survey
+
+
+def load_survey(path: Path) -> TileSurvey:
+    """A finished survey's summary (the per-point loss stays on disk)."""
+    with np.load(path) as saved:
+        return TileSurvey(saved["occupied"], int(saved["core_count"]), float(saved["level"]), float(saved["loss_sum"]),
+                          saved["spacings"], int(saved["picks"]))
+
+
+def load_fill_loss(path: Path) -> FillLoss:
+    """A survey's fill loss for the simplify step (relative None when the method weighs points equally)."""
+    with np.load(path) as saved:
+        relative = saved["relative"].astype(np.float64) if "relative" in saved.files else None
+        return FillLoss(relative, float(saved["level"]))

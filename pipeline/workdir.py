@@ -66,6 +66,10 @@ class WorkDir:
         """Where a bucketed piece's occupied cells and row starts are kept once its rows are stored."""
         return self.path / f"piece-{number}.npz"
 
+    def survey_path(self, tile_id: int) -> Path:
+        """Where a tile's survey (coverage, and a stratified method's fill loss) is kept."""
+        return self.path / f"survey-{tile_id}.npz"
+
     def tile_path(self, tile_id: int) -> Path:
         """Where a simplified tile's picks are kept."""
         return self.path / f"tile-{tile_id}.npz"

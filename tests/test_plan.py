@@ -105,3 +105,31 @@ def test_coverage_weights_give_equal_areas_equal_shares_whatever_their_density()
     assert abs(weights.sum() - 800) < 0.1 * 800 and 0.8 < weights[0] / weights[1] < 1.25
     budgets = tile_budgets(np.array([40_000, 2_000]), 800 / 42_000, weights=weights)
     assert budgets.sum() == 800 and 0.8 < budgets[0] / budgets[1] < 1.25
+
+
+def test_saliency_weights_are_the_sums_of_one_pass_keep_weights():
+    """Per point 1 + loss / scan mean; per tile the sum: checked against the weights of the points themselves."""
+    from tiling.budgets import saliency_weights
+
+    rng = np.random.default_rng(1)
+    losses = [rng.exponential(scale, size=n) for scale, n in ((0.01, 300), (0.2, 100), (0.05, 50))]
+    counts = np.array([len(loss) for loss in losses])
+    levels = np.array([loss.mean() for loss in losses])
+    weights, scales = saliency_weights(counts, levels, np.array([(loss / loss.mean()).sum() for loss in losses]))
+    scan_mean = np.concatenate(losses).mean()
+    np.testing.assert_allclose(weights, [(1 + loss / scan_mean).sum() for loss in losses])
+    np.testing.assert_allclose(scales, levels / scan_mean)
+    flat, flat_scales = saliency_weights(counts, np.zeros(3), np.zeros(3))
+    np.testing.assert_array_equal(flat, counts) and np.testing.assert_array_equal(flat_scales, 0)
+
+
+def test_pooled_median_of_quantile_sketches_matches_the_union():
+    from model.stratified import SPACING_QUANTILES
+    from tiling.budgets import pooled_median
+
+    rng = np.random.default_rng(2)
+    samples = [rng.lognormal(0, 0.3, 20_000), rng.lognormal(1, 0.3, 5_000), np.empty(0)]
+    sketches = [np.quantile(s, SPACING_QUANTILES) if len(s) else s for s in samples]
+    pooled = pooled_median(sketches, np.array([len(s) for s in samples]))
+    assert abs(pooled - np.median(np.concatenate(samples))) < 0.03
+    assert pooled_median([np.empty(0)], np.array([0])) == 0.0

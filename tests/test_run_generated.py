@@ -158,3 +158,26 @@ def test_zarr_output_replaced_only_with_overwrite(tmp_path, dense_patch):
     pipeline.run(dense_patch, out, ratio=0.02, workers=1, overwrite=True)
     assert zarr.open_group(str(out), mode="r")["x"].shape == (2_400,)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["o.zarr"]  # no temporary or scratch left behind
+
+
+@pytest.mark.parametrize("method", ["stratified-detail", "learned"])
+def test_budgets_follow_detail_across_tiles(tmp_path, method):
+    """A flat 12 m x 4 m floor beside an equally dense 4 m x 4 m bumpy patch (each its own 4 m tiles): the
+    stratified detail methods weigh tile against tile as one pass would, so the bumpy tile keeps more than
+    its share of the count and the flat tiles less, while the total stays exact and no flat tile is empty."""
+    rng = np.random.default_rng(5)
+    xy = rng.uniform([0, 0], [16, 4], size=(64_000, 2))
+    bumpy = xy[:, 0] >= 12
+    z = np.where(bumpy, 0.4 * np.sin(6 * xy[:, 0]) * np.cos(6 * xy[:, 1]), 0.0) + 0.002 * rng.normal(size=len(xy))
+    header = laspy.LasHeader(version="1.2", point_format=3)
+    header.scales, header.offsets = [0.001] * 3, [500_000.0, 4_000_000.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = 500_000 + xy[:, 0], 4_000_000 + xy[:, 1], z
+    las.write(tmp_path / "floor.las")
+    report = pipeline.run(tmp_path / "floor.las", tmp_path / "out.las", ratio=0.1, method=method, tile_size=4.0,
+                          workers=1)
+    kept_x = laspy.read(tmp_path / "out.las").x - 500_000
+    assert report.output_points == 6_400
+    share = (kept_x >= 12).mean()  # the bumpy patch holds a quarter of the points
+    assert share > 0.3, share
+    assert min(((kept_x >= lo) & (kept_x < lo + 4)).sum() for lo in (0, 4, 8)) > 0.5 * 1_600

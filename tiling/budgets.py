@@ -80,3 +80,31 @@ def coverage_weights(occupied: np.ndarray, sizes: np.ndarray, target: int, multi
     for tile, row in enumerate(np.log(np.maximum(occupied, 1e-3))):
         weights[tile] = np.exp(np.interp(at, log_sizes, row))
     return weights
+
+
+def saliency_weights(counts: np.ndarray, levels: np.ndarray, loss_sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tile weights for tile_budgets and each tile's detail scale, so that tiled keep weights are those of
+    one pass over the whole scan: a point's weight is 1 + loss / (the scan's mean loss), and a tile
+    holding it gets the sum of its points' weights.
+
+    counts: (tiles,) core points; levels: (tiles,) mean absolute loss per core point; loss_sums: (tiles,)
+    sums of the relative loss (loss / level) over the core. Scales are level / scan mean (0 if no loss).
+    """
+    counts = np.asarray(counts, dtype=np.float64)
+    levels = np.asarray(levels, dtype=np.float64)
+    scan_level = float((counts * levels).sum() / max(counts.sum(), 1.0))
+    scales = levels / scan_level if scan_level > 0 else np.zeros_like(levels)
+    return counts + scales * np.asarray(loss_sums, dtype=np.float64), scales
+
+
+def pooled_median(quantiles: list[np.ndarray], sizes: np.ndarray) -> float:
+    """The median of the union of samples, each given by evenly spaced quantiles (its own length may be 0)
+    and its sample size (sizes: (samples,)); 0 when every sample is empty."""
+    values = [q for q in quantiles if len(q)]
+    if not values:
+        return 0.0
+    weights = np.concatenate([np.full(len(q), size / len(q)) for q, size in zip(quantiles, sizes) if len(q)])
+    values_flat = np.concatenate(values)
+    order = np.argsort(values_flat, kind="stable")
+    cumulative = np.cumsum(weights[order])
+    return float(values_flat[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
