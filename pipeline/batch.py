@@ -26,6 +26,7 @@ from typing import Any, Callable
 from pipeline.config import RunConfig, build_config
 from pipeline.errors import PipelineError
 from pipeline.execute import cluster
+from pipeline.output_guard import is_same_file
 from pipeline.runner import default_output, run_scan
 from pipeline.workdir import run_key, write_atomically
 
@@ -51,8 +52,12 @@ class BatchSummary:
 
 
 def jobs_from_folder(folder: Path, out_dir: Path, settings: dict[str, Any]) -> list[BatchJob]:
-    """Every scan file in `folder` (sorted) as one job writing to `out_dir`."""
+    """Every scan file in `folder` (sorted) as one job writing to `out_dir`; when `out_dir` is the folder
+    itself, files named as the outputs of other files there are the batch's own results, not scans."""
     files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SCAN_SUFFIXES)
+    if out_dir.is_dir() and is_same_file(out_dir, folder):
+        outputs = {default_output(path).name for path in files}
+        files = [path for path in files if path.name not in outputs]
     if not files:
         raise PipelineError(f"{folder}: no .las, .laz or .ply files")
     settings = dict(settings)  # the caller's flags stay as given
@@ -89,6 +94,20 @@ def jobs_from_toml(path: Path, out_dir: Path | None, overrides: dict[str, Any]) 
     return jobs
 
 
+def check_batch_outputs(jobs: list[BatchJob]) -> None:
+    """Before any job runs: no two jobs write one output, and no job writes over any job's input."""
+    inputs = [path for job in jobs for path in job.inputs]
+    for number, job in enumerate(jobs):
+        for other in jobs[:number]:
+            if job.output.resolve() == other.output.resolve() or is_same_file(job.output, other.output):
+                raise PipelineError(f"{job.output}: written by two jobs ({', '.join(map(str, other.inputs))} and "
+                                    f"{', '.join(map(str, job.inputs))}); give them different outputs")
+        for path in inputs:
+            if job.output.resolve() == path.resolve() or is_same_file(job.output, path):
+                raise PipelineError(f"{job.output}: the output of {', '.join(map(str, job.inputs))} is also an "
+                                    "input of the batch; write the results elsewhere (--out-dir)")
+
+
 class Manifest:
     """Per-output records of a batch, kept in a JSON file."""
 
@@ -114,6 +133,7 @@ class Manifest:
 def run_batch(jobs: list[BatchJob], manifest: Manifest, log: Callable[[dict[str, Any]], None],
               overwrite: bool = False, scheduler: str | None = None, scratch: Path | None = None) -> BatchSummary:
     """Run every job not already done on one cluster; a failed job is recorded and the batch goes on."""
+    check_batch_outputs(jobs)
     summary = BatchSummary()
     first = jobs[0].config
     with cluster(first.workers, first.memory_limit, scheduler) as client:

@@ -21,7 +21,7 @@ from model.selection import kept_count
 from pipeline.atomic import atomic_output
 from pipeline.config import RunConfig
 from pipeline.errors import PipelineError
-from pipeline.runner import check_output
+from pipeline.output_guard import check_output
 
 MESH_OUTPUTS = (".ply", ".obj", ".off")
 BALL_RADII = (1.5, 3.0, 6.0)  # ball radii in multiples of the kept points' mean nearest-neighbour spacing
@@ -57,7 +57,7 @@ def run_mesh(inputs: Sequence[Path], output: Path | None, config: RunConfig, ove
         raise PipelineError(f"--mesh takes one mesh file, got {len(inputs)} inputs")
     source = Path(inputs[0])
     output = Path(output) if output is not None else Path.cwd() / f"{mesh_name(source)}.simplified.ply"
-    check_output(output, overwrite, MESH_OUTPUTS)
+    check_output(output, [source], overwrite, MESH_OUTPUTS)
     vertices, faces = read_mesh(source)
     count = kept_count(config.ratio, len(vertices))
     if count < MIN_VERTICES:

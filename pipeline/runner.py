@@ -1,7 +1,6 @@
 """`pipeline run`: read -> plan -> bucket -> simplify tiles on Dask -> stitch -> write, in bounded memory."""
 from __future__ import annotations
 
-import os
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass
@@ -19,6 +18,7 @@ from pipeline.crs import crs_wkt
 from pipeline.errors import PipelineError
 from pipeline.atomic import remove_stale_temporaries
 from pipeline.execute import cluster, map_tasks
+from pipeline.output_guard import check_output
 from pipeline.scan import Piece, Scan
 from pipeline.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, simplify_tile, survey_tile
 from pipeline.validate import check_run
@@ -58,20 +58,6 @@ def default_output(first_input: Path) -> Path:
     return Path.cwd() / f"{stem}.simplified{suffix}"
 
 
-def check_output(output: Path, overwrite: bool, suffixes: Sequence[str] = OUTPUT_SUFFIXES) -> None:
-    """Refuse an unsupported suffix, an existing output without overwrite, or an unwritable folder."""
-    if output.suffix.lower() not in suffixes:
-        raise PipelineError(f"{output}: unsupported output type (use {', '.join(suffixes)})")
-    if output.exists() and not overwrite:
-        raise PipelineError(f"{output}: already exists (pass --overwrite to replace it)")
-    if output.parent.exists() and not output.parent.is_dir():
-        raise PipelineError(f"{output.parent}: not a folder, so it cannot hold the output")
-    if not output.parent.is_dir():
-        raise PipelineError(f"{output.parent}: output folder does not exist")
-    if not os.access(output.parent, os.W_OK):
-        raise PipelineError(f"{output.parent}: output folder is not writable")
-
-
 def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: RunConfig, overwrite: bool = False,
              scratch: str | Path | None = None, show_progress: bool = True, scheduler: str | None = None,
              client: Client | None = None) -> RunReport:
@@ -85,7 +71,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     config = config.validated()
     scan = Scan(inputs)
     output = Path(output) if output is not None else default_output(scan.paths[0])
-    check_output(output, overwrite)
+    check_output(output, [Path(p) for p in inputs], overwrite, OUTPUT_SUFFIXES)
     check_run(scan, config.allow_geographic, Path(scratch or output.parent))
     if target_count(config.ratio, scan.point_count) == 0:
         raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {scan.point_count} points")

@@ -11,6 +11,7 @@ import numpy as np
 
 from pipeline.errors import PipelineError
 from pipeline.las_source import LasSource
+from pipeline.output_guard import check_distinct_inputs
 from pipeline.ply_source import PlySource
 from pipeline.validate import OutsideBounds, check_input_path, check_points
 
@@ -71,6 +72,7 @@ class Scan:
         if not paths:
             raise PipelineError("no input files given")
         self.sources = [open_source(Path(p)) for p in paths]
+        check_distinct_inputs(self.paths)
         first = self.sources[0]
         self.header = output_header(first.header)
         self.point_format = self.header.point_format

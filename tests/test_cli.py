@@ -71,6 +71,7 @@ def test_existing_output_needs_overwrite(tmp_path):
     out.write_bytes(b"keep me")
     assert_one_line_error(cli("run", str(source), "--ratio", "0.5", "-o", str(out)), "already exists")
     assert out.read_bytes() == b"keep me"
+    small_las(out, n=10)  # --overwrite replaces only a file of the output's kind (tests/test_hostile.py)
     ok = cli("run", str(source), "--ratio", "0.5", "-o", str(out), "--overwrite", "-q", "-w", "1")
     assert ok.returncode == 0, ok.stderr
     assert laspy.read(out).header.point_count == 1_000
