@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import signal
 import sys
 from datetime import datetime, timezone
 from pathlib import Path
@@ -10,7 +11,7 @@ import click
 
 import configs
 from pipeline.config import METHODS, build_config
-from pipeline.errors import PipelineError, file_system_error
+from pipeline.errors import Interrupted, PipelineError, Terminated, file_system_error, signal_exit_code
 from pipeline.evaluate import DEFAULT_SAMPLE
 from pipeline.info import format_summary, summarize
 
@@ -19,15 +20,27 @@ EXIT_ERROR = 2
 
 class OneLineErrors(click.Group):
     """Turns PipelineError (and lazrs panics) into `pipeline: error: ...` and exit code 2, no traceback;
-    so too a file-system error no check foresaw (a disk filling up, a folder vanishing): it names its path."""
+    so too a file-system error no check foresaw (a disk filling up, a folder vanishing): it names its path.
+    Ctrl-C and SIGTERM end in one line saying what was kept, exit 130 or 143."""
 
     def invoke(self, ctx: click.Context):
+        signal.signal(signal.SIGTERM, raise_terminated)
         try:
             return super().invoke(ctx)
         except (PipelineError, OSError) as exc:
             message = file_system_error(exc) if isinstance(exc, OSError) else exc
             click.echo(f"pipeline: error: {message}", err=True)
             sys.exit(EXIT_ERROR)
+        except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: one line, the shell's exit code, no traceback
+            click.echo(f"pipeline: {exc if isinstance(exc, Interrupted) else 'interrupted'}", err=True)
+            sys.exit(signal_exit_code(exc))
+
+
+def raise_terminated(signum: int, frame: object) -> None:
+    """SIGTERM unwinds the run as Ctrl-C does (the work folder kept, the cluster closed); a second one is
+    ignored while that happens."""
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    raise Terminated()
 
 
 @click.group(cls=OneLineErrors, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})

@@ -25,3 +25,21 @@ def file_system_error(exc: OSError, path: str | Path | None = None) -> PipelineE
 def is_fatal_signal(exc: BaseException) -> bool:
     """True for exceptions that must propagate untouched (Ctrl-C, sys.exit), unlike lazrs's PanicException."""
     return isinstance(exc, (KeyboardInterrupt, SystemExit, GeneratorExit))
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread by the CLI's handler, so a run unwinds from it as from Ctrl-C."""
+
+
+class Interrupted(KeyboardInterrupt):
+    """A run stopped by Ctrl-C or SIGTERM, with one line that says what was kept and how to resume; `exit_code`
+    is the shell's for the signal (130 for SIGINT, 143 for SIGTERM)."""
+
+    def __init__(self, message: str, exit_code: int) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+def signal_exit_code(exc: KeyboardInterrupt) -> int:
+    """130 after Ctrl-C, 143 after SIGTERM (128 + the signal number, as a shell reports it)."""
+    return exc.exit_code if isinstance(exc, Interrupted) else 143 if isinstance(exc, Terminated) else 130

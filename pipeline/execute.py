@@ -13,7 +13,7 @@ from tqdm import tqdm
 from pipeline.errors import PipelineError
 
 ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
-WORKER_PRELOAD = "pipeline.tasks"  # imported as each worker starts, not on its first task
+WORKER_PRELOAD = "pipeline.worker_setup"  # imported as each worker starts: the tasks, and signals left to the run
 
 
 @contextmanager

@@ -15,7 +15,7 @@ from model.registry import EVEN_SPACING, FILL_LOSSES
 from model.stratified import COVER_SPACINGS
 from pipeline.config import RunConfig, parse_size
 from pipeline.crs import crs_wkt
-from pipeline.errors import PipelineError
+from pipeline.errors import Interrupted, PipelineError, signal_exit_code
 from pipeline.atomic import remove_stale_temporaries
 from pipeline.execute import cluster, map_tasks
 from pipeline.output_guard import check_output
@@ -77,6 +77,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
         raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {scan.point_count} points")
     remove_stale_temporaries(output)
     work = WorkDir.for_run(output, Path(scratch) if scratch else None, scan.paths, config)
+    written = None
     try:
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler) as active:
             written, tiles, resumed = simplify_scan(scan, output, config, work, active, clock, show_progress)
@@ -85,8 +86,22 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
             work.remove()
             raise
         raise PipelineError(f"{exc} (finished work kept in {work.path}: re-run the same command to resume)") from exc
+    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM through the CLI's handler; the cluster is closed by now
+        raise interrupted(exc, work, output if written is not None else None) from None
     work.remove()
     return RunReport(output, scan.point_count, written, tiles, resumed, clock.total, clock.laps)
+
+
+def interrupted(exc: KeyboardInterrupt, work: WorkDir, written: Path | None) -> Interrupted:
+    """The one line for a stopped run: what is kept and how to resume (the work folder stays if it holds any)."""
+    code = signal_exit_code(exc)
+    if written is not None:  # stopped while the cluster closed: the output is whole
+        work.remove()
+        return Interrupted(f"interrupted after {written} was written in full; it is kept", code)
+    if work.has_results():
+        return Interrupted(f"interrupted; finished work kept in {work.path}: re-run the same command to resume", code)
+    work.remove()
+    return Interrupted("interrupted before any work finished; nothing was written", code)
 
 
 def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, client: Client, clock: "PhaseClock",

@@ -87,8 +87,8 @@ class WorkDir:
         write_atomically(self.piece_path(number), lambda tmp: save_npz(tmp, cells=cells, starts=starts))
 
     def has_results(self) -> bool:
-        """Whether any piece or tile finished: worth keeping for a resume."""
-        return any(self.path.glob("piece-*.npz")) or any(self.path.glob("tile-*.npz"))
+        """Whether any piece, survey or tile finished: worth keeping for a resume."""
+        return any(any(self.path.glob(f"{kind}-*.npz")) for kind in ("piece", "survey", "tile"))
 
     def remove(self) -> None:
         """Delete the folder: the run finished and its output is in place."""

@@ -1,0 +1,57 @@
+"""Stopping a run: Ctrl-C or SIGTERM to the whole process group (as a terminal or a scheduler sends it)
+ends it with one line that says how to resume, the shell's exit code, no traceback, no live process
+left, the finished work kept; the same command then resumes and finishes.
+"""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import laspy
+import pytest
+
+from tests.test_run_generated import write_dense_patch
+
+HANG_GUARD_S = 300  # a bound on waiting for a stopped run, not a speed threshold
+
+
+@pytest.fixture(scope="module")
+def patch(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("interrupt") / "patch.las"
+    write_dense_patch(path, n=300_000)
+    return path
+
+
+def live_processes(group: int) -> list[str]:
+    """Processes of a process group that are still running (zombies, which hold nothing, excluded)."""
+    listing = subprocess.run(["ps", "-o", "stat=,pid=,args=", "-g", str(group)], capture_output=True, text=True).stdout
+    return [line for line in listing.splitlines() if line.strip() and not line.strip().startswith("Z")]
+
+
+@pytest.mark.parametrize("stop, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, stop, code):
+    out = tmp_path / "out.laz"
+    command = [sys.executable, "-m", "pipeline.cli", "run", str(patch), "-r", "0.1", "-o", str(out), "--tile-size", "4",
+               "-w", "2", "-q"]
+    run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    while not list(tmp_path.glob(".out.laz.work-*/tile-*.npz")):
+        assert run.poll() is None, run.stderr.read()  # still running when the first tile is done
+        time.sleep(0.1)
+    os.killpg(run.pid, stop)
+    _, stderr = run.communicate(timeout=HANG_GUARD_S)
+    assert run.returncode == code, stderr
+    lines = stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("pipeline: interrupted; finished work kept in "), stderr
+    assert "re-run the same command to resume" in lines[0] and "Traceback" not in stderr
+    assert not out.exists() and len(list(tmp_path.glob(".out.laz.work-*"))) == 1
+    time.sleep(1)  # workers end with the run's process: give the last one a moment to be reaped
+    assert live_processes(run.pid) == []
+    again = subprocess.run(command[:-1], capture_output=True, text=True, timeout=HANG_GUARD_S)
+    assert again.returncode == 0, again.stderr
+    assert "finished earlier" in again.stdout, again.stdout
+    assert laspy.read(out).header.point_count == 30_000
+    assert not list(tmp_path.glob(".out.laz.work-*"))
