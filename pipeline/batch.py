@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable
 
-from pipeline.config import RunConfig, build_config
+from pipeline.config import RunConfig, build_config, checked_settings
 from pipeline.errors import PipelineError
 from pipeline.execute import cluster
 from pipeline.output_guard import is_same_file
@@ -71,27 +71,51 @@ def jobs_from_toml(path: Path, out_dir: Path | None, overrides: dict[str, Any]) 
         spec = tomllib.loads(path.read_text())
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise PipelineError(f"{path}: not a readable TOML job list ({exc})") from exc
-    defaults = dict(spec.get("defaults", {}))
-    entries = spec.get("job", [])
+    defaults, entries = spec.get("defaults", {}), spec.get("job", [])
+    if not isinstance(defaults, dict):
+        raise PipelineError(f"{path}: [defaults] must be a table of settings, got {defaults!r}")
+    if not isinstance(entries, list) or not all(isinstance(entry, dict) for entry in entries):
+        raise PipelineError(f"{path}: jobs must be [[job]] tables, got {entries!r}")
     if not entries:
         raise PipelineError(f"{path}: no [[job]] entries")
+    defaults = dict(defaults)
     base = path.parent
-    folder = out_dir or (base / defaults.pop("out_dir") if "out_dir" in defaults else None)
+    folder = out_dir or (base / text_value(defaults.pop("out_dir"), f"{path}: [defaults] out_dir")
+                         if "out_dir" in defaults else None)
     defaults.pop("out_dir", None)
     jobs = []
     for number, entry in enumerate(entries, start=1):
+        where = f"{path}: job {number}"
         entry = dict(entry)
         if "input" not in entry:
-            raise PipelineError(f"{path}: job {number} has no input")
+            raise PipelineError(f"{where} has no input")
         names = entry.pop("input")
-        inputs = tuple(base / name for name in ([names] if isinstance(names, str) else names))
+        names = [names] if isinstance(names, str) else names
+        if not isinstance(names, list) or not names:
+            raise PipelineError(f"{where}: input must be a path or a list of paths, got {names!r}")
+        inputs = tuple(base / text_value(name, f"{where} input") for name in names)
         output = entry.pop("output", None)
         if output is None and folder is None:
-            raise PipelineError(f"{path}: job {number} has no output and there is no out_dir")
-        target = base / output if output else folder / default_output(inputs[0]).name
-        settings = {**defaults, **entry, **overrides}
+            raise PipelineError(f"{where} has no output and there is no out_dir")
+        target = base / text_value(output, f"{where} output") if output is not None else folder / default_output(inputs[0]).name
+        settings = {**job_settings(defaults, f"{path}: [defaults]"), **job_settings(entry, where), **overrides}
         jobs.append(BatchJob(inputs, target, build_config(settings.pop("config", None), **settings)))
     return jobs
+
+
+def job_settings(table: dict[str, Any], where: str) -> dict[str, Any]:
+    """Run settings of a job list's table, checked (`config`, a preset or file, may sit beside them)."""
+    settings = dict(table)
+    preset = settings.pop("config", None)
+    checked_settings(settings, where)
+    return settings if preset is None else {**settings, "config": text_value(preset, f"{where} config")}
+
+
+def text_value(value: Any, where: str) -> str:
+    """A non-empty string from a job list (a path), else one line naming where it sits."""
+    if not isinstance(value, str) or not value.strip():
+        raise PipelineError(f"{where} must be a non-empty path, got {value!r}")
+    return value
 
 
 def check_batch_outputs(jobs: list[BatchJob]) -> None:
@@ -117,6 +141,9 @@ class Manifest:
             self.entries: dict[str, dict[str, Any]] = json.loads(path.read_text()) if path.is_file() else {}
         except (OSError, ValueError) as exc:
             raise PipelineError(f"{path}: unreadable batch manifest ({exc}); move it aside to start afresh") from exc
+        if not (isinstance(self.entries, dict) and all(isinstance(e, dict) for e in self.entries.values())):
+            raise PipelineError(f"{path}: not a batch manifest (a JSON object of per-output records); "
+                                "move it aside to start afresh")
 
     def is_done(self, job: BatchJob, key: str) -> bool:
         """Finished earlier with the same inputs and settings, and the output is still there."""

@@ -36,6 +36,15 @@ class OneLineErrors(click.Group):
             sys.exit(signal_exit_code(exc))
 
 
+def note_worker_cap(workers: int, scheduler: str | None) -> None:
+    """One line on stderr when a local cluster gets fewer workers than asked for (no more than the cores)."""
+    from pipeline.execute import local_workers
+
+    if scheduler is None and local_workers(workers) < workers:
+        click.echo(f"pipeline: note: --workers {workers} capped at {local_workers(workers)}, the cores this "
+                   "machine gives the run", err=True)
+
+
 def raise_terminated(signum: int, frame: object) -> None:
     """SIGTERM unwinds the run as Ctrl-C does (the work folder kept, the cluster closed); a second one is
     ignored while that happens."""
@@ -106,6 +115,7 @@ def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, met
             if not quiet:
                 click.echo(mesh_report.summary())
             return
+        note_worker_cap(settings.workers, scheduler)
         report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch,
                           show_progress=not quiet and not log_json and sys.stderr.isatty(), scheduler=scheduler)
     except PipelineError as exc:
@@ -165,6 +175,7 @@ def batch_command(jobs: Path, out_dir: Path | None, ratio: float | None, method:
         raise PipelineError(f"{jobs}: no such job file or folder")
     default_manifest = out_dir / "batch-manifest.json" if out_dir else jobs.with_suffix(".manifest.json")
     log = log_json_line if log_json else log_human_line
+    note_worker_cap(job_list[0].config.workers, scheduler)
     summary = run_batch(job_list, Manifest(manifest or default_manifest), log, overwrite, scheduler, scratch)
     log({"event": "batch", "done": summary.done, "skipped": summary.skipped, "failed": len(summary.failed)})
     if summary.failed:

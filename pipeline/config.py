@@ -13,6 +13,7 @@ from model.registry import METHODS
 from pipeline.errors import PipelineError
 
 _SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([KMGT]i?B|B)?\s*$", re.IGNORECASE)
+MIN_MEMORY_LIMIT = 256 * 2**20  # a worker process takes ~90 MiB at rest (270 with torch): below, Dask restarts it forever
 _UNITS = {"b": 1, "kb": 10**3, "mb": 10**6, "gb": 10**9, "tb": 10**12,
           "kib": 2**10, "mib": 2**20, "gib": 2**30, "tib": 2**40}
 
@@ -47,6 +48,10 @@ class RunConfig:
         for name in ("max_tile_points", "workers", "chunk_points"):
             if int(getattr(self, name)) < 1:
                 raise PipelineError(f"{name.replace('_', '-')} must be at least 1, got {getattr(self, name)!r}")
+        if parse_size(self.memory_limit, "--memory-limit") < MIN_MEMORY_LIMIT:
+            raise PipelineError(f"--memory-limit {self.memory_limit} is below the {MIN_MEMORY_LIMIT // 2**20} MiB a "
+                                "worker needs (one takes about 100 MB at rest, its tile the rest): give it 256MiB "
+                                "or more, 2GB for the default method")
         if parse_size(self.cache_memory, "cache-memory") >= parse_size(self.memory_limit, "--memory-limit"):
             raise PipelineError(f"cache-memory must be below --memory-limit, got {self.cache_memory!r} "
                                 f"with {self.memory_limit!r}")
@@ -72,11 +77,32 @@ def load_settings(config: str | None) -> dict[str, Any]:
         table = tomllib.loads(path.read_text()).get("run", {})
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise PipelineError(f"{path}: not a valid TOML config ({exc})") from None
-    known = {f.name for f in fields(RunConfig)}
-    unknown = sorted(set(table) - known)
+    if not isinstance(table, dict):
+        raise PipelineError(f"{path}: [run] must be a table of settings, got {type(table).__name__} {table!r}")
+    return checked_settings(table, f"{path}: [run]")
+
+
+SETTING_TYPES = {f.name: f.type for f in fields(RunConfig)}  # "float", "int", "str", "bool" (postponed annotations)
+SIZE_SETTINGS = ("memory_limit", "cache_memory")  # "2GB" or a number of bytes
+TYPE_WORDS = {"float": "a number", "int": "a whole number", "str": "a string", "bool": "true or false"}
+
+
+def checked_settings(settings: dict[str, Any], where: str) -> dict[str, Any]:
+    """Settings from a file, each a known name with a value of its type (an int where a float goes is
+    fine, a bool is no number); else one line naming `where` (file and table) and the key."""
+    unknown = sorted(set(settings) - set(SETTING_TYPES))
     if unknown:
-        raise PipelineError(f"{path}: unknown setting(s) {', '.join(unknown)} in [run]")
-    return table
+        raise PipelineError(f"{where}: unknown setting(s) {', '.join(unknown)} (known: {', '.join(SETTING_TYPES)})")
+    for key, value in settings.items():
+        kind = SETTING_TYPES[key]
+        ok = {"float": isinstance(value, (int, float)) and not isinstance(value, bool),
+              "int": isinstance(value, int) and not isinstance(value, bool),
+              "str": isinstance(value, str) or (key in SIZE_SETTINGS and isinstance(value, int)
+                                                and not isinstance(value, bool)),
+              "bool": isinstance(value, bool)}[kind]
+        if not ok:
+            raise PipelineError(f"{where}: {key} must be {TYPE_WORDS[kind]}, got {value!r}")
+    return settings
 
 
 def build_config(config: str | None = None, **overrides: Any) -> RunConfig:

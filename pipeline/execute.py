@@ -2,9 +2,12 @@
 from __future__ import annotations
 
 import logging
+import os
+import socket
 import time
 from contextlib import contextmanager
 from typing import Any, Callable, ContextManager, Iterator, Sequence
+from urllib.parse import urlsplit
 
 import dask
 from dask.distributed import Client, LocalCluster, WorkerPlugin, as_completed
@@ -16,9 +19,21 @@ ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPEN
 WORKER_PRELOAD = "pipeline.worker_setup"  # imported as each worker starts: the tasks, and signals left to the run
 
 
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity, which containers and Slurm narrow)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def local_workers(requested: int) -> int:
+    """Worker processes for a local cluster: as requested, but no more than the cores (more only contend
+    for them and multiply memory; `--workers 1000` would start a thousand processes)."""
+    return max(1, min(requested, available_cores()))
+
+
 @contextmanager
 def local_cluster(workers: int, memory_limit: str) -> Iterator[Client]:
-    """A client on a fresh LocalCluster: `workers` processes, one thread each, BLAS/torch threads 1.
+    """A client on a fresh LocalCluster: `workers` processes (capped at the cores), one thread each,
+    BLAS/torch threads 1.
 
     Workers are spawned (Dask's default): forking started them 1.3 s faster, but a forked child can
     inherit a lock held by one of the parent's threads, and in a long-lived process (the test suite)
@@ -30,7 +45,7 @@ def local_cluster(workers: int, memory_limit: str) -> Iterator[Client]:
     # but made read+bucket 1.6x and simplify 1.5x slower on bcts_1..4 (page faults on every big array).
     environ = ONE_THREAD
     with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}):
-        with LocalCluster(n_workers=workers, threads_per_worker=1, memory_limit=memory_limit, processes=True,
+        with LocalCluster(n_workers=local_workers(workers), threads_per_worker=1, memory_limit=memory_limit, processes=True,
                           dashboard_address=None, preload=[WORKER_PRELOAD],
                           # no dashboard; the scheduler's health-check server takes a free port, not 8787,
                           # which another run may hold (Dask then warns on stderr, breaking one-line errors)
@@ -46,6 +61,7 @@ def connect(scheduler: str, connect_s: float = 10.0, workers_s: float = 60.0) ->
     Its workers must import this package and see the inputs and the scratch folder at the same paths.
     """
     quiet_dask_logs()
+    probe_scheduler(scheduler, connect_s)
     try:
         client = Client(scheduler, timeout=f"{connect_s}s")
     except (OSError, TimeoutError, ValueError) as exc:
@@ -57,6 +73,42 @@ def connect(scheduler: str, connect_s: float = 10.0, workers_s: float = 60.0) ->
             raise PipelineError(f"{scheduler}: the Dask scheduler has no workers") from exc
         client.register_plugin(QuietWorkerLogs())
         yield client
+
+
+HANDSHAKE_MAX_BYTES = 2**24  # a Dask scheduler's greeting is a few hundred bytes; "HTTP/1.1" read as a length is ~10^18
+
+
+def probe_scheduler(scheduler: str, timeout_s: float) -> None:
+    """Refuse, in one line and within `timeout_s`, a tcp:// address where nothing listens, or where what
+    listens is not a Dask scheduler: a scheduler greets every new connection first (the length of its
+    handshake message, 8 bytes little-endian, then the message), so silence or an absurd length means
+    another service (Dask's own client would wait for ever or try to allocate exabytes)."""
+    address = urlsplit(scheduler if "://" in scheduler else f"tcp://{scheduler}")
+    if address.scheme != "tcp":
+        return  # tls:// and others: left to Dask's own connection checks
+    try:
+        port = address.port
+    except ValueError:
+        port = None
+    if address.hostname is None or port is None:
+        raise PipelineError(f"{scheduler}: a scheduler address looks like tcp://HOST:PORT")
+    try:
+        with socket.create_connection((address.hostname, port), timeout=timeout_s) as connection:
+            connection.settimeout(timeout_s)
+            greeting = b""
+            while len(greeting) < 8:
+                chunk = connection.recv(8 - len(greeting))
+                if not chunk:
+                    raise PipelineError(f"{scheduler}: the service there closed the connection without a Dask "
+                                        "handshake (not a Dask scheduler?)")
+                greeting += chunk
+    except TimeoutError:
+        raise PipelineError(f"{scheduler}: no Dask handshake within {timeout_s:g} s (nothing answers there, or it "
+                            "is not a Dask scheduler)") from None
+    except OSError as exc:
+        raise PipelineError(f"{scheduler}: cannot reach the Dask scheduler ({exc.strerror or exc})") from None
+    if not 0 < int.from_bytes(greeting, "little") <= HANDSHAKE_MAX_BYTES:
+        raise PipelineError(f"{scheduler}: the service there does not speak Dask's protocol (not a Dask scheduler)")
 
 
 def cluster(workers: int, memory_limit: str, scheduler: str | None) -> ContextManager[Client]:

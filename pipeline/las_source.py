@@ -15,7 +15,7 @@ import lazrs
 import numpy as np
 
 from pipeline.errors import PipelineError, is_fatal_signal
-from pipeline.validate import LAS_PREAMBLE_BYTES, check_las_header, check_las_preamble
+from pipeline.validate import LAS_PREAMBLE_BYTES, check_las_header, check_las_layout, check_las_preamble
 
 
 def describe_failure(path: Path, exc: BaseException) -> PipelineError:
@@ -68,6 +68,7 @@ def open_las(path: Path) -> laspy.LasReader:
     with open(path, "rb") as probe:
         head = probe.read(LAS_PREAMBLE_BYTES)
         check_las_preamble(path, head, os.fstat(probe.fileno()).st_size)
+        check_las_layout(path, probe, os.fstat(probe.fileno()).st_size)
     source = io.BufferedReader(Las10AsLas11(path)) if head[24:26] == b"\x01\x00" else path
     return laspy.open(source, laz_backend=laspy.LazBackend.Lazrs)
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import shutil
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, BinaryIO
 
 import laspy
 import numpy as np
@@ -23,6 +23,12 @@ LAS_PREAMBLE_BYTES = 104  # the LAS header up to and including its VLR count
 VERSION_OFFSET = 24        # major, then minor
 VLR_COUNT_OFFSET = 100
 VLR_HEADER_BYTES = 54     # the fixed part of every VLR
+VLR_LENGTH_AT = 20        # its record length after the header: after reserved (2), user id (16), record id (2)
+HEADER_SIZE_AT, POINT_OFFSET_AT = 94, 96
+MIN_HEADER_BYTES = 227    # LAS 1.0-1.2; 1.3 adds 8 bytes, 1.4 another 140
+LAS14_HEADER_BYTES = 375
+EVLR_START_AT, EVLR_COUNT_AT = 235, 243
+EVLR_HEADER_BYTES = 60
 PROBE_POINTS = 1_000      # points of each file decoded before any worker starts
 BOUNDS_SLACK_STEPS = 100  # points may stray this many grid steps (scale) outside the header's bounds ...
 BOUNDS_SLACK_SHARE = 0.01  # ... or this share of its extent, whichever is larger
@@ -55,6 +61,43 @@ def check_las_preamble(path: Path, head: bytes, file_size: int) -> None:
     if vlr_count * VLR_HEADER_BYTES > file_size:
         raise PipelineError(f"{path}: header declares {vlr_count:,} VLRs, more than a {file_size:,}-byte file "
                             "holds (corrupt header)")
+
+
+def check_las_layout(path: Path, stream: BinaryIO, file_size: int) -> None:
+    """The header's layout adds up before laspy trusts it: its size, the VLRs it declares ending at or before
+    the point data's start (else points would be read from VLR bytes: garbage, exit 0), the point data
+    starting inside the file, and LAS 1.4 EVLRs after the points and within the file (else laspy loops
+    over billions of them)."""
+    stream.seek(0)
+    head = stream.read(LAS14_HEADER_BYTES)
+    header_size, point_offset = field(head, HEADER_SIZE_AT, 2), field(head, POINT_OFFSET_AT, 4)
+    vlr_count = field(head, VLR_COUNT_OFFSET, 4)
+    if not MIN_HEADER_BYTES <= header_size <= point_offset:
+        raise PipelineError(f"{path}: header size {header_size} does not fit before the point data at byte "
+                                f"{point_offset} (corrupt header)")
+    if point_offset > file_size:
+        raise PipelineError(f"{path}: point data said to start at byte {point_offset:,}, past the end of a "
+                            f"{file_size:,}-byte file (corrupt header or truncated file)")
+    position = header_size
+    for number in range(1, vlr_count + 1):
+        stream.seek(position + VLR_LENGTH_AT)
+        length = stream.read(2)
+        if len(length) < 2:
+            raise PipelineError(f"{path}: VLR {number} of {vlr_count} is cut short (truncated file?)")
+        position += VLR_HEADER_BYTES + int.from_bytes(length, "little")
+        if position > point_offset:
+            raise PipelineError(f"{path}: VLR {number} of {vlr_count} runs past the start of the point data "
+                                f"(byte {point_offset:,}): corrupt header, points would be read from VLR bytes")
+    if head[VERSION_OFFSET + 1] >= 4 and len(head) >= EVLR_COUNT_AT + 4:
+        evlr_start, evlr_count = field(head, EVLR_START_AT, 8), field(head, EVLR_COUNT_AT, 4)
+        if evlr_count and not point_offset <= evlr_start <= file_size - evlr_count * EVLR_HEADER_BYTES:
+            raise PipelineError(f"{path}: header declares {evlr_count:,} EVLRs from byte {evlr_start:,}, more than "
+                                f"a {file_size:,}-byte file holds after its points (corrupt header)")
+
+
+def field(head: bytes, offset: int, size: int) -> int:
+    """An unsigned little-endian header field (0 where the header is too short to hold it)."""
+    return int.from_bytes(head[offset:offset + size], "little") if len(head) >= offset + size else 0
 
 
 def check_las_header(path: Path, header: laspy.LasHeader, file_size: int) -> None:

@@ -148,3 +148,123 @@ def test_mesh_output_that_is_the_input_is_refused(tmp_path):
     trimesh.creation.icosphere(subdivisions=3).export(mesh)
     refused(tmp_path, ("run", str(mesh), "--mesh", "-r", "0.5", "-o", str(mesh), "--overwrite", "-q"), [mesh],
             "is also an input")
+
+
+def patched_bytes(path: Path, offset: int, value: int, size: int) -> Path:
+    """The file with one little-endian header field overwritten."""
+    data = bytearray(path.read_bytes())
+    data[offset:offset + size] = value.to_bytes(size, "little")
+    path.write_bytes(bytes(data))
+    return path
+
+
+@pytest.mark.parametrize("command", ["run", "info"])
+def test_point_data_offset_inside_the_vlrs_is_refused(tmp_path, scan, command):
+    """LAS 1.4 format 6 with a CRS VLR: a point offset moved back into that VLR would read VLR bytes as points."""
+    import pyproj
+
+    from tests.test_bad_input import make_las, scattered
+
+    source = make_las(tmp_path / "crs.las", scattered(), crs=pyproj.CRS.from_epsg(32617))
+    header_size = laspy.read(source).header.offset_to_point_data
+    patched_bytes(source, 96, header_size - 100, 4)
+    args = ("run", str(source), "-r", "0.1", "-o", "out.las", *FAST) if command == "run" else ("info", str(source))
+    refused(tmp_path, args, [source], "runs past the start of the point data")
+
+
+@pytest.mark.parametrize("command", ["run", "info"])
+def test_billions_of_evlrs_are_refused_at_once(tmp_path, command):
+    from tests.test_bad_input import make_las, scattered
+
+    import pyproj
+
+    source = make_las(tmp_path / "evlr.las", scattered(), crs=pyproj.CRS.from_epsg(32617))
+    patched_bytes(source, 235, source.stat().st_size, 8)  # first EVLR at the file's end ...
+    patched_bytes(source, 243, 3_000_000_000, 4)           # ... and three billion of them
+    args = ("run", str(source), "-r", "0.1", "-o", "out.las", *FAST) if command == "run" else ("info", str(source))
+    refused(tmp_path, args, [source], "3,000,000,000 EVLRs")
+
+
+@pytest.mark.parametrize("config, words", [
+    ("run = 3\n", "[run] must be a table"),
+    ("[run]\nratio = true\n", "[run]: ratio must be a number"),
+    ("[run]\nworkers = 1.5\n", "[run]: workers must be a whole number"),
+    ("[run]\nmethod = 4\n", "[run]: method must be a string"),
+    ("[run]\ntiles = 4\n", "unknown setting(s) tiles"),
+])
+def test_config_file_errors_name_the_file_and_key(tmp_path, scan, config, words):
+    settings = tmp_path / "settings.toml"
+    settings.write_text(config)
+    refused(tmp_path, ("run", str(scan), "-r", "0.1", "-o", "out.las", "-c", str(settings)), [scan, settings],
+            "settings.toml", words)
+
+
+@pytest.mark.parametrize("jobs, words", [
+    ('[[job]]\ninput = ""\n', "job 1 input must be a non-empty path"),
+    ("[[job]]\ninput = 5\n", "job 1: input must be a path or a list of paths"),
+    ("[[job]]\ninput = []\n", "job 1: input must be a path or a list of paths"),
+    ("job = 3\n", "jobs must be [[job]] tables"),
+    ('defaults = "fast"\n[[job]]\ninput = "in.las"\n', "[defaults] must be a table"),
+    ('[defaults]\nratio = "0.1"\n[[job]]\ninput = "in.las"\n', "[defaults]: ratio must be a number"),
+    ('[[job]]\ninput = "in.las"\nseed = "x"\n', "job 1: seed must be a whole number"),
+])
+def test_batch_job_list_errors_name_the_file_and_entry(tmp_path, scan, jobs, words):
+    job_list = tmp_path / "jobs.toml"
+    job_list.write_text(jobs)
+    out = tmp_path / "out"
+    out.mkdir()
+    refused(tmp_path, ("batch", str(job_list), "--out-dir", str(out), "-r", "0.1"), [scan, job_list, out],
+            "jobs.toml", words)
+
+
+def test_batch_manifest_that_is_not_ours_is_refused(tmp_path, scan):
+    manifest = tmp_path / "list.json"
+    manifest.write_text("[1, 2]")
+    scans = tmp_path / "scans"
+    scans.mkdir()
+    os.link(scan, scans / "in.las")
+    refused(tmp_path, ("batch", str(scans), "--out-dir", str(tmp_path / "out"), "-r", "0.1", "--manifest",
+                       str(manifest)), [scan, manifest], "not a batch manifest")
+
+
+def test_memory_limit_too_small_to_start_a_worker_is_refused(tmp_path, scan):
+    refused(tmp_path, ("run", str(scan), "-r", "0.1", "-o", "out.las", "--memory-limit", "40MB", *FAST), [scan],
+            "--memory-limit 40MB is below")
+
+
+@pytest.mark.parametrize("service", ["silent", "http"])
+def test_scheduler_address_of_another_service_fails_in_bounded_time(tmp_path, scan, service):
+    """Something listens but never speaks Dask: silence (Dask's client waited for ever) or HTTP (it tried to
+    allocate 3 EiB)."""
+    import socket
+    import threading
+
+    listener = socket.create_server(("127.0.0.1", 0))
+    port = listener.getsockname()[1]
+    accepted: list[socket.socket] = []
+
+    def serve() -> None:
+        while True:
+            try:
+                connection, _ = listener.accept()
+            except OSError:
+                return
+            accepted.append(connection)
+            if service == "http":
+                connection.recv(1024)
+                connection.sendall(b"HTTP/1.1 200 OK\r\nContent-Length: 2\r\n\r\nhi")
+
+    threading.Thread(target=serve, daemon=True).start()
+    try:
+        refused(tmp_path, ("run", str(scan), "-r", "0.1", "-o", "out.las", "--scheduler", f"tcp://127.0.0.1:{port}",
+                           *FAST), [scan], f"127.0.0.1:{port}", "Dask")
+    finally:
+        listener.close()
+        for connection in accepted:
+            connection.close()
+
+
+def test_more_workers_than_cores_are_capped_with_a_note(tmp_path, scan):
+    result = cli("run", str(scan), "-r", "0.1", "-o", str(tmp_path / "out.las"), "-m", "fps", "-w", "1000")
+    assert result.returncode == 0, result.stderr
+    assert "--workers 1000 capped at" in result.stderr and "Traceback" not in result.stderr
