@@ -43,3 +43,21 @@ def degrees_reason(header: laspy.LasHeader) -> str | None:
         return (f"it has no CRS and its coordinates look like degrees (x {mins[0]:g}..{maxs[0]:g}, "
                 f"y {mins[1]:g}..{maxs[1]:g}, scale {header.scales[0]:g})")
     return None
+
+
+def same_crs(first: laspy.LasHeader, second: laspy.LasHeader) -> bool:
+    """Whether two headers place coordinates in one CRS (as pyproj compares them; raw WKT text where
+    pyproj cannot parse it; two files without a CRS agree)."""
+    a, b = parsed_crs(first), parsed_crs(second)
+    if a is not None and b is not None:
+        return a.equals(b, ignore_axis_order=True)
+    return a is None and b is None and crs_wkt(first) == crs_wkt(second)
+
+
+def crs_label(header: laspy.LasHeader) -> str:
+    """A short name for a message: 'EPSG:2992 (NAD83 / Oregon GIC Lambert (ft))', a CRS name, or 'no CRS'."""
+    crs = parsed_crs(header)
+    if crs is None:
+        return "an unparsed CRS" if crs_wkt(header) else "no CRS"
+    code = crs.to_epsg()
+    return f"EPSG:{code} ({crs.name})" if code else repr(crs.name)

@@ -13,7 +13,7 @@ from pipeline.errors import PipelineError
 from pipeline.las_source import LasSource
 from pipeline.output_guard import check_distinct_inputs
 from pipeline.ply_source import PlySource
-from pipeline.validate import OutsideBounds, check_input_path, check_points
+from pipeline.validate import OutsideBounds, bounds_encodable, check_input_path, check_points
 
 LAS_SUFFIXES = (".las", ".laz")
 
@@ -146,11 +146,14 @@ class Scan:
         """Decode the first `count` points of every file, so a corrupt one fails before any worker starts.
 
         A file whose header bounds miss even those points (bounds written unscaled, as in simple1_3.las)
-        gets its bounds measured by one streamed pass; points that stray later fail in the worker.
+        gets its bounds measured by one streamed pass, and so does one whose bounds lie beyond what its scale
+        and offset can encode (near float max); points that stray later fail in the worker.
         """
         first = 0
         for number, source in enumerate(self.sources):
-            if source.point_count:
+            if source.point_count and not bounds_encodable(source.header):
+                self._measure_bounds(source)
+            elif source.point_count:
                 try:
                     self.read(Piece(-1, number, 0, min(count, source.point_count), first))  # -1: never stored
                 except OutsideBounds:

@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, BinaryIO
 import laspy
 import numpy as np
 
-from pipeline.crs import degrees_reason
+from pipeline.crs import crs_label, degrees_reason, same_crs
 from pipeline.errors import PipelineError
 from tiling.store import TAIL
 
@@ -29,6 +29,10 @@ MIN_HEADER_BYTES = 227    # LAS 1.0-1.2; 1.3 adds 8 bytes, 1.4 another 140
 LAS14_HEADER_BYTES = 375
 EVLR_START_AT, EVLR_COUNT_AT = 235, 243
 EVLR_HEADER_BYTES = 60
+LEGACY_COUNT_AT, POINT_COUNT_14_AT = 107, 247
+LASZIP_USER, LASZIP_CHUNK_SIZE_AT = b"laszip encoded", 12  # chunk size: after compressor, coder, version, options
+VARIABLE_CHUNKS = 0xFFFFFFFF
+CHUNK_TABLE_HEADER_BYTES = 8  # version, number of chunks
 PROBE_POINTS = 1_000      # points of each file decoded before any worker starts
 BOUNDS_SLACK_STEPS = 100  # points may stray this many grid steps (scale) outside the header's bounds ...
 BOUNDS_SLACK_SHARE = 0.01  # ... or this share of its extent, whichever is larger
@@ -66,33 +70,63 @@ def check_las_preamble(path: Path, head: bytes, file_size: int) -> None:
 def check_las_layout(path: Path, stream: BinaryIO, file_size: int) -> None:
     """The header's layout adds up before laspy trusts it: its size, the VLRs it declares ending at or before
     the point data's start (else points would be read from VLR bytes: garbage, exit 0), the point data
-    starting inside the file, and LAS 1.4 EVLRs after the points and within the file (else laspy loops
-    over billions of them)."""
+    starting inside the file, LAS 1.4 EVLRs after the points and within the file (else laspy loops
+    over billions of them), and a LAZ chunk table with a believable chunk count."""
     stream.seek(0)
     head = stream.read(LAS14_HEADER_BYTES)
     header_size, point_offset = field(head, HEADER_SIZE_AT, 2), field(head, POINT_OFFSET_AT, 4)
-    vlr_count = field(head, VLR_COUNT_OFFSET, 4)
     if not MIN_HEADER_BYTES <= header_size <= point_offset:
         raise PipelineError(f"{path}: header size {header_size} does not fit before the point data at byte "
-                                f"{point_offset} (corrupt header)")
+                            f"{point_offset} (corrupt header)")
     if point_offset > file_size:
         raise PipelineError(f"{path}: point data said to start at byte {point_offset:,}, past the end of a "
                             f"{file_size:,}-byte file (corrupt header or truncated file)")
-    position = header_size
-    for number in range(1, vlr_count + 1):
-        stream.seek(position + VLR_LENGTH_AT)
-        length = stream.read(2)
-        if len(length) < 2:
-            raise PipelineError(f"{path}: VLR {number} of {vlr_count} is cut short (truncated file?)")
-        position += VLR_HEADER_BYTES + int.from_bytes(length, "little")
-        if position > point_offset:
-            raise PipelineError(f"{path}: VLR {number} of {vlr_count} runs past the start of the point data "
-                                f"(byte {point_offset:,}): corrupt header, points would be read from VLR bytes")
-    if head[VERSION_OFFSET + 1] >= 4 and len(head) >= EVLR_COUNT_AT + 4:
+    chunk_size = laszip_chunk_size(path, stream, header_size, field(head, VLR_COUNT_OFFSET, 4), point_offset)
+    minor = head[VERSION_OFFSET + 1]
+    if minor >= 4 and len(head) >= EVLR_COUNT_AT + 4:
         evlr_start, evlr_count = field(head, EVLR_START_AT, 8), field(head, EVLR_COUNT_AT, 4)
         if evlr_count and not point_offset <= evlr_start <= file_size - evlr_count * EVLR_HEADER_BYTES:
             raise PipelineError(f"{path}: header declares {evlr_count:,} EVLRs from byte {evlr_start:,}, more than "
                                 f"a {file_size:,}-byte file holds after its points (corrupt header)")
+    if chunk_size is not None:
+        points = (field(head, POINT_COUNT_14_AT, 8) if minor >= 4 else 0) or field(head, LEGACY_COUNT_AT, 4)
+        check_chunk_table(path, stream, point_offset, file_size, points, chunk_size)
+
+
+def laszip_chunk_size(path: Path, stream: BinaryIO, header_size: int, vlr_count: int, point_offset: int) -> int | None:
+    """Walk the VLRs, each of which must end by the point data's start; the laszip VLR's chunk size
+    (VARIABLE_CHUNKS for variable chunks), or None when there is none (uncompressed LAS)."""
+    position, chunk_size = header_size, None
+    for number in range(1, vlr_count + 1):
+        stream.seek(position)
+        fixed = stream.read(VLR_HEADER_BYTES)
+        if len(fixed) < VLR_HEADER_BYTES:
+            raise PipelineError(f"{path}: VLR {number} of {vlr_count} is cut short (truncated file?)")
+        length = int.from_bytes(fixed[VLR_LENGTH_AT:VLR_LENGTH_AT + 2], "little")
+        if fixed[2:18].rstrip(b"\x00") == LASZIP_USER and length >= LASZIP_CHUNK_SIZE_AT + 4:
+            chunk_size = int.from_bytes(stream.read(LASZIP_CHUNK_SIZE_AT + 4)[LASZIP_CHUNK_SIZE_AT:], "little")
+        position += VLR_HEADER_BYTES + length
+        if position > point_offset:
+            raise PipelineError(f"{path}: VLR {number} of {vlr_count} runs past the start of the point data "
+                                f"(byte {point_offset:,}): corrupt header, points would be read from VLR bytes")
+    return chunk_size
+
+
+def check_chunk_table(path: Path, stream: BinaryIO, point_offset: int, file_size: int, points: int,
+                      chunk_size: int) -> None:
+    """A LAZ chunk table's chunk count agrees with the points (one chunk per chunk_size points, or at most
+    one per point for variable chunks): lazrs allocates that many entries and a corrupt count aborts
+    the whole process (SIGABRT, no error to catch). A table pointer lazrs cannot follow is its own error."""
+    stream.seek(point_offset)
+    pointer = int.from_bytes(stream.read(8), "little", signed=True)
+    if not point_offset + 8 <= pointer <= file_size - CHUNK_TABLE_HEADER_BYTES:
+        return  # no table where it says (old LAZ writers, or corrupt): lazrs reports it as an IoError
+    stream.seek(pointer + 4)  # after the table's version
+    chunks = int.from_bytes(stream.read(4), "little")
+    most = max(points, 1) if chunk_size == VARIABLE_CHUNKS else -(-points // max(chunk_size, 1)) + 1
+    if chunks > most:
+        raise PipelineError(f"{path}: LAZ chunk table lists {chunks:,} chunks for {points:,} points (at most "
+                            f"{most:,}): corrupt file")
 
 
 def field(head: bytes, offset: int, size: int) -> int:
@@ -122,6 +156,17 @@ def check_las_header(path: Path, header: laspy.LasHeader, file_size: int) -> Non
                             f"{available:,} (truncated file or wrong point count)")
 
 
+def bounds_encodable(header: laspy.LasHeader) -> bool:
+    """Whether the header's XY bounds lie where its scale and offset can put a point (int32 steps from the
+    offset, with the usual slack): bounds beyond that reach are not the points' (e.g. near float max),
+    and a grid built from them would be absurd, so they are measured from the points instead."""
+    scales = np.abs(np.asarray(header.scales[:2], np.float64))
+    offsets = np.asarray(header.offsets[:2], np.float64)
+    reach = scales * float(np.iinfo(np.int32).max) * (1 + BOUNDS_SLACK_SHARE) + BOUNDS_SLACK_STEPS * scales
+    mins, maxs = np.asarray(header.mins[:2], np.float64), np.asarray(header.maxs[:2], np.float64)
+    return bool((mins >= offsets - reach).all() and (maxs <= offsets + reach).all() and (mins <= maxs).all())
+
+
 class OutsideBounds(PipelineError):
     """Points lie outside their file's header bounds (so the header's bounds are wrong)."""
 
@@ -144,8 +189,13 @@ def check_points(path: Path, xyz: np.ndarray, header: laspy.LasHeader) -> None:
 
 
 def check_run(scan: "Scan", allow_degrees: bool, scratch: Path) -> None:
-    """Before any worker starts: no input in degrees (unless allowed), the first points of every file decode,
+    """Before any worker starts: every input in one CRS, none in degrees (unless allowed), the first points of every file decode,
     and the scratch folder has room for the bucketed scan (every record, uncompressed, with its index)."""
+    first = scan.sources[0]
+    for source in scan.sources[1:]:
+        if not same_crs(first.header, source.header):
+            raise PipelineError(f"{source.path}: its CRS, {crs_label(source.header)}, differs from {first.path}'s, "
+                                f"{crs_label(first.header)}: reproject the inputs to one CRS before merging them")
     for source in scan.sources:
         reason = degrees_reason(source.header)
         if reason and not allow_degrees:

@@ -152,9 +152,7 @@ def test_mesh_output_that_is_the_input_is_refused(tmp_path):
 
 def patched_bytes(path: Path, offset: int, value: int, size: int) -> Path:
     """The file with one little-endian header field overwritten."""
-    data = bytearray(path.read_bytes())
-    data[offset:offset + size] = value.to_bytes(size, "little")
-    path.write_bytes(bytes(data))
+    path.write_bytes(bytes(patched_bytes_in(bytearray(path.read_bytes()), offset, value, size)))
     return path
 
 
@@ -268,3 +266,56 @@ def test_more_workers_than_cores_are_capped_with_a_note(tmp_path, scan):
     result = cli("run", str(scan), "-r", "0.1", "-o", str(tmp_path / "out.las"), "-m", "fps", "-w", "1000")
     assert result.returncode == 0, result.stderr
     assert "--workers 1000 capped at" in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("second_crs, words", [(32618, "EPSG:32618"), (None, "no CRS")])
+def test_inputs_in_different_crss_are_refused(tmp_path, second_crs, words):
+    import pyproj
+
+    from tests.test_bad_input import make_las, scattered
+
+    first = make_las(tmp_path / "utm17.las", scattered(), crs=pyproj.CRS.from_epsg(32617))
+    second = (make_las(tmp_path / "other.las", scattered(seed=1), crs=pyproj.CRS.from_epsg(second_crs)) if second_crs
+              else small_las(tmp_path / "other.las"))  # the same point format 6, without a CRS
+    refused(tmp_path, ("run", str(first), str(second), "-r", "0.1", "-o", "out.las", *FAST), [first, second],
+            "differs from", "EPSG:32617", words)
+
+
+def test_inputs_in_one_crs_are_merged(tmp_path):
+    import pyproj
+
+    from tests.test_bad_input import make_las, scattered
+
+    parts = [make_las(tmp_path / f"p{i}.las", scattered(seed=i), crs=pyproj.CRS.from_epsg(32617)) for i in range(2)]
+    result = cli("run", *map(str, parts), "-r", "0.1", "-o", str(tmp_path / "out.las"), *FAST)
+    assert result.returncode == 0, result.stderr
+    assert laspy.read(tmp_path / "out.las").header.point_count == 400
+
+
+def test_header_bounds_near_float_max_are_measured_from_the_points(tmp_path):
+    """Bounds no scale and offset can reach (1.7e308) are not the points': measured instead, exact count."""
+    from tests.test_bad_input import MAX_X, MIN_X, make_las, patched, scattered
+
+    source = patched(patched(make_las(tmp_path / "huge.las", scattered()), MAX_X, 1.7e308), MIN_X, -1.7e308)
+    result = cli("run", str(source), "-r", "0.1", "-o", str(tmp_path / "out.las"), *FAST)
+    assert result.returncode == 0, result.stderr
+    assert laspy.read(tmp_path / "out.las").header.point_count == 200
+
+
+def test_corrupt_laz_chunk_count_is_refused_not_an_abort(tmp_path):
+    """A chunk table claiming 2^31 chunks made lazrs abort the process (exit -6, no message)."""
+    from tests.test_bad_input import make_las, scattered
+
+    source = make_las(tmp_path / "in.laz", scattered(20_000))
+    with laspy.open(source) as reader:
+        point_offset = reader.header.offset_to_point_data
+    data = bytearray(source.read_bytes())
+    table = int.from_bytes(data[point_offset:point_offset + 8], "little")
+    source.write_bytes(bytes(patched_bytes_in(data, table + 4, 2**31, 4)))
+    refused(tmp_path, ("run", str(source), "-r", "0.1", "-o", "out.las", *FAST), [source], "chunk table lists")
+
+
+def patched_bytes_in(data: bytearray, offset: int, value: int, size: int) -> bytearray:
+    """The bytes with one little-endian field overwritten."""
+    data[offset:offset + size] = value.to_bytes(size, "little")
+    return data
