@@ -24,9 +24,9 @@ from pipeline.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_su
 from pipeline.validate import check_run
 from pipeline.workdir import WorkDir
 from pipeline.writers import OUTPUT_SUFFIXES, OutputMeta, TilePart, write_output
-from tiling.budgets import coverage_weights, pooled_median, saliency_weights, target_count, tile_budgets
+from tiling.budgets import coverage_weights, pooled_median, saliency_weights, target_count, tile_budgets, voxels_at
 from tiling.bucket import row_ranges
-from tiling.plan import DensityGrid, TilePlan, plan_tiles
+from tiling.plan import DensityGrid, TilePlan, plan_tiles, summed_cells
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
 from tiling.store import Slice, TileStore
 
@@ -121,9 +121,9 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, cl
         occupied = np.array([survey.occupied for survey in surveys])
         if config.method in EVEN_SPACING:  # tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
-        else:  # a point in every voxel of the cover radius, so a sparse tile can cover its holes; saliency shared
-            floors = np.ceil(coverage_weights(occupied, sizes, target, COVER_SPACINGS)).astype(np.int64)
-            weights, fill = scan_fill(surveys)
+        else:  # saliency shared as one pass would; a point in every voxel of the hole radius, so every tile
+            weights, fill = scan_fill(surveys)  # keeps enough to cover its holes, however flat
+            floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)
     budgets = tile_budgets(counts, config.ratio, floors=floors, weights=weights)
     jobs = make_jobs(work, plan, slices, budgets, config, fill)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]
@@ -162,17 +162,18 @@ def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], work: WorkDir, 
     """The one streamed pass: pieces stored sorted by grid cell (those an earlier attempt finished are
     reused); then the plan from the summed density, and each tile's core+halo as row slices of the pieces."""
     mins, maxs = scan.bounds
-    grid = DensityGrid.covering(mins, maxs, config.tile_size)
+    try:
+        grid = DensityGrid.covering(mins, maxs, config.tile_size)
+    except ValueError as exc:
+        raise PipelineError(f"{scan.paths[0]}: {exc}: pass a larger --tile-size") from None
     finished = {piece.number: work.finished_piece(piece.number) for piece in pieces}
     pending = [piece for piece in pieces if finished[piece.number] is None]
     fresh = map_tasks(client, bucket_piece, pending, scan, grid, str(work.path), desc="read and bucket",
                       show_progress=show_progress, weight=lambda result: int(result[1][-1]))
     finished.update({piece.number: result for piece, result in zip(pending, fresh)})
     buckets = [finished[piece.number] for piece in pieces]
-    counts = np.zeros(grid.shape[0] * grid.shape[1], dtype=np.int64)
-    for cells, starts in buckets:
-        counts[cells] += np.diff(starts)
-    plan = plan_tiles(grid, counts.reshape(grid.shape), config.max_tile_points)
+    cells, counts = summed_cells([cells for cells, _ in buckets], [np.diff(starts) for _, starts in buckets])
+    plan = plan_tiles(grid, cells, counts, config.max_tile_points)
     slices: list[list[Slice]] = []
     for tile_id in range(len(plan.tiles)):
         cell_ranges = plan.halo_cell_ranges(tile_id, config.overlap)

@@ -3,7 +3,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from tiling.bucket import bucket_by_cell, row_ranges
-from tiling.plan import DensityGrid, plan_tiles
+from tiling.plan import DensityGrid, plan_tiles, summed_cells
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
 import tiling.store as store_module
 from tiling.store import Slice, TileStore
@@ -27,13 +27,15 @@ def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path):
     grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=20)
     store = TileStore.create(tmp_path / "t.zarr", RECORD, {})
     index = []
-    counts = np.zeros(grid.shape[0] * grid.shape[1], dtype=np.int64)
+    cell_parts, count_parts = [], []
     for number, (first, records, points) in enumerate(pieces):
         buckets = bucket_by_cell(records, points, first, grid)
         store.write_piece(number, buckets.rows)
-        counts[buckets.cells] += buckets.counts
+        cell_parts.append(buckets.cells)
+        count_parts.append(buckets.counts)
         index.append(buckets)
-    plan = plan_tiles(grid, counts.reshape(grid.shape), max_points=1_500)
+    cells, counts = summed_cells(cell_parts, count_parts)
+    plan = plan_tiles(grid, cells, counts, max_points=1_500)
     assert counts.sum() == len(xyz) and sum(t.count for t in plan.tiles) == len(xyz)
     reopened = TileStore.open(tmp_path / "t.zarr")
     seen_core = np.zeros(len(xyz), dtype=int)

@@ -21,7 +21,7 @@ def test_every_point_in_exactly_one_core_even_on_edges():
     edges = np.array([[grid.origin[0] + k * grid.cell, grid.origin[1] + 3 * grid.cell, 0] for k in range(0, 40)])
     corner = np.array([xyz.max(0), xyz.min(0)])
     xyz = np.vstack([xyz, edges, corner])
-    plan = plan_tiles(grid, grid.count([xyz]), max_points=2_000)
+    plan = plan_tiles(grid, *grid.count([xyz]), max_points=2_000)
     owner = plan.tile_of(xyz)
     assert (owner >= 0).all()
     counts = np.bincount(owner, minlength=len(plan.tiles))
@@ -36,7 +36,7 @@ def test_every_point_in_exactly_one_core_even_on_edges():
 def test_dense_tiles_split_until_under_budget():
     xyz = clustered_points(80_000)
     grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=50)
-    plan = plan_tiles(grid, grid.count([xyz]), max_points=3_000)
+    plan = plan_tiles(grid, *grid.count([xyz]), max_points=3_000)
     single_cell = [(t.i1 - t.i0) * (t.j1 - t.j0) == 1 for t in plan.tiles]
     assert all(t.count <= 3_000 or one for t, one in zip(plan.tiles, single_cell))
     assert len(plan.tiles) > (200 // 50 + 1) * (120 // 50 + 1)  # more tiles than the nominal grid
@@ -46,7 +46,7 @@ def test_dense_tiles_split_until_under_budget():
 def test_all_identical_points_make_one_tile():
     xyz = np.tile([[10.0, 20.0, 3.0]], (500, 1))
     grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=50)
-    plan = plan_tiles(grid, grid.count([xyz]), max_points=100)
+    plan = plan_tiles(grid, *grid.count([xyz]), max_points=100)
     assert len(plan.tiles) == 1 and plan.tiles[0].count == 500
 
 
@@ -80,7 +80,7 @@ def test_floors_keep_sparse_tiles_and_the_exact_total(ratio):
 def test_floors_are_occupied_cells():
     xyz = np.array([[0.5, 0.5, 0], [0.6, 0.5, 0], [3.5, 0.5, 0], [90.0, 90.0, 0]])
     grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=8)  # 1-unit cells, 8 per tile
-    plan = plan_tiles(grid, grid.count([xyz]), max_points=100)
+    plan = plan_tiles(grid, *grid.count([xyz]), max_points=100)
     assert sorted((t.count, t.occupied) for t in plan.tiles) == [(1, 1), (3, 2)]
 
 
@@ -133,3 +133,31 @@ def test_pooled_median_of_quantile_sketches_matches_the_union():
     pooled = pooled_median(sketches, np.array([len(s) for s in samples]))
     assert abs(pooled - np.median(np.concatenate(samples))) < 0.03
     assert pooled_median([np.empty(0)], np.array([0])) == 0.0
+
+
+def test_far_apart_sites_keep_fine_cells_and_tiles_within_the_budget():
+    """Two dense 100 m sites 200 km apart: a dense grid over the extent would have had to coarsen its cells
+    (to ~100 m, each holding a whole site); the sparse grid keeps tile_size / 8 cells, so every tile stays
+    at or under max_points and only occupied cells are stored."""
+    rng = np.random.default_rng(4)
+    site = rng.uniform(0, 100, size=(30_000, 2))
+    xyz = np.column_stack([np.concatenate([site, site + [200_000.0, 50_000.0]]), np.zeros(60_000)])
+    grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=50)
+    assert grid.cell == 50 / 8 and grid.shape[0] > 30_000
+    plan = plan_tiles(grid, *grid.count([xyz]), max_points=2_000)
+    assert max(t.count for t in plan.tiles) <= 2_000 and sum(t.count for t in plan.tiles) == 60_000
+    assert len(plan.cells) <= 2 * 17 * 17  # the cells the two sites cover, not the 10^9 of the extent
+    np.testing.assert_array_equal(np.bincount(plan.tile_of(xyz), minlength=len(plan.tiles)),
+                                  [t.count for t in plan.tiles])
+
+
+def test_voxels_at_a_measured_size_are_the_counts_and_fall_between_them():
+    from tiling.budgets import occupied_voxels, voxels_at
+
+    rng = np.random.default_rng(6)
+    plane = np.column_stack([rng.uniform(0, 10, size=(20_000, 2)), np.zeros(20_000)])
+    sizes = 0.25 * 2.0 ** np.arange(0, 4)
+    occupied = occupied_voxels(plane, sizes)[None, :]
+    np.testing.assert_allclose(voxels_at(occupied, sizes, sizes[2]), occupied[:, 2])
+    between = voxels_at(occupied, sizes, sizes[1] * np.sqrt(2))[0]
+    assert occupied[0, 2] < between < occupied[0, 1]

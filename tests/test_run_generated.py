@@ -181,3 +181,18 @@ def test_budgets_follow_detail_across_tiles(tmp_path, method):
     share = (kept_x >= 12).mean()  # the bumpy patch holds a quarter of the points
     assert share > 0.3, share
     assert min(((kept_x >= lo) & (kept_x < lo + 4)).sum() for lo in (0, 4, 8)) > 0.5 * 1_600
+
+
+def test_two_sites_far_apart_run_in_tiles_within_the_budget(tmp_path):
+    """The corridor case in small: two 20 m sites 150 km apart, tiles under max_tile_points, exact count."""
+    rng = np.random.default_rng(9)
+    site = rng.uniform(0, 20, size=(20_000, 2))
+    xy = np.concatenate([site, site + [150_000.0, 0.0]])
+    header = laspy.LasHeader(version="1.2", point_format=3)
+    header.scales, header.offsets = [0.001] * 3, [500_000.0, 4_000_000.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = 500_000 + xy[:, 0], 4_000_000 + xy[:, 1], 0.05 * rng.normal(size=len(xy))
+    las.write(tmp_path / "sites.las")
+    report = pipeline.run(tmp_path / "sites.las", tmp_path / "out.las", ratio=0.1, method="fps", max_tile_points=5_000,
+                          workers=1)
+    assert report.output_points == 4_000 and report.tiles >= 8  # 40k points: at least 8 tiles of <= 5k

@@ -65,21 +65,24 @@ def occupied_voxels(xyz: np.ndarray, sizes: np.ndarray) -> np.ndarray:
     return counts
 
 
-def coverage_weights(occupied: np.ndarray, sizes: np.ndarray, target: int, multiple: float = 1.0) -> np.ndarray:
+def coverage_weights(occupied: np.ndarray, sizes: np.ndarray, target: int) -> np.ndarray:
     """Per-tile share of a uniform-spacing pass over the whole scan: each tile's occupied voxels at the
-    voxel size whose scan-wide total is `target`, times `multiple` (log-log interpolation between the
-    measured sizes; multiple 2 gives the voxels of twice that spacing).
+    voxel size whose scan-wide total is `target` (log-log interpolation between the measured sizes).
 
     occupied: (tiles, levels) counts at `sizes` (ascending). A global FPS or voxel thinning keeps about one
     point per such voxel, so budgets in proportion to these counts make tiles agree on one spacing.
     """
     totals = occupied.sum(axis=0).astype(np.float64)  # falls as the size grows
     log_sizes, log_totals = np.log(sizes), np.log(np.maximum(totals, 1))
-    at = float(np.interp(-np.log(max(target, 1)), -log_totals, log_sizes)) + np.log(multiple)  # interp wants ascending x
-    weights = np.empty(len(occupied))
-    for tile, row in enumerate(np.log(np.maximum(occupied, 1e-3))):
-        weights[tile] = np.exp(np.interp(at, log_sizes, row))
-    return weights
+    at = float(np.interp(-np.log(max(target, 1)), -log_totals, log_sizes))  # interp wants ascending x
+    return voxels_at(occupied, sizes, float(np.exp(at)))
+
+
+def voxels_at(occupied: np.ndarray, sizes: np.ndarray, size: float) -> np.ndarray:
+    """(tiles,) occupied voxels of each tile at voxel edge `size`, log-log interpolated between the measured
+    `sizes` (ascending; held at the ends)."""
+    log_sizes, at = np.log(sizes), np.log(max(size, 1e-300))
+    return np.array([np.exp(np.interp(at, log_sizes, row)) for row in np.log(np.maximum(occupied, 1e-3))])
 
 
 def saliency_weights(counts: np.ndarray, levels: np.ndarray, loss_sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

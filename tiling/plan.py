@@ -2,6 +2,8 @@
 
 Each point falls in exactly one grid cell (floor of its offset, clipped to the grid), and each cell in
 at most one tile, so core membership is a half-open partition that floating-point rounding cannot break.
+The grid is sparse: only occupied cells are counted and looked up, so its cells stay tile_size / 8
+whatever the extent (two sites 200 km apart, a 100 km corridor) and tiles stay within the point budget.
 """
 from __future__ import annotations
 
@@ -11,7 +13,7 @@ from typing import Iterable
 import numpy as np
 
 CELLS_PER_TILE = 8       # a nominal tile is 8x8 cells: three quadtree splits before a tile is one cell
-MAX_GRID_CELLS = 2048    # per axis; caps the density grid at 4 M counters whatever the extent
+MAX_AXIS_CELLS = 2**31   # per axis, so flat cell ids (i * ny + j) fit int64
 
 
 @dataclass(frozen=True)
@@ -24,11 +26,13 @@ class DensityGrid:
 
     @classmethod
     def covering(cls, mins: np.ndarray, maxs: np.ndarray, tile_size: float) -> "DensityGrid":
-        """A grid of tile_size/8 cells over [mins, maxs], coarsened if the extent would need too many."""
+        """A grid of tile_size/8 cells over [mins, maxs] (only its occupied cells are ever stored)."""
         extent = np.maximum(np.asarray(maxs[:2], float) - np.asarray(mins[:2], float), 0.0)
-        cell = max(tile_size / CELLS_PER_TILE, float(extent.max()) / MAX_GRID_CELLS, 1e-9)
-        shape = tuple(int(n) for n in np.maximum(np.ceil(extent / cell), 1).astype(int))
-        return cls((float(mins[0]), float(mins[1])), cell, shape)
+        cell = max(tile_size / CELLS_PER_TILE, 1e-9)
+        cells = np.maximum(np.ceil(extent / cell), 1)
+        if (cells > MAX_AXIS_CELLS).any():
+            raise ValueError(f"an extent of {extent.max():g} needs more than {MAX_AXIS_CELLS} cells of {cell:g} per axis")
+        return cls((float(mins[0]), float(mins[1])), cell, (int(cells[0]), int(cells[1])))
 
     def cell_of(self, xy: np.ndarray) -> np.ndarray:
         """Flat (row-major, x first) cell id of each point; points past the edges go to the edge cells."""
@@ -37,12 +41,20 @@ class DensityGrid:
         j = np.clip(ij[:, 1], 0, self.shape[1] - 1).astype(np.int64)
         return i * self.shape[1] + j
 
-    def count(self, xy_chunks: Iterable[np.ndarray]) -> np.ndarray:
-        """Points per cell, shape (nx, ny), accumulated over a stream of xy chunks."""
-        counts = np.zeros(self.shape[0] * self.shape[1], dtype=np.int64)
-        for xy in xy_chunks:
-            counts += np.bincount(self.cell_of(xy), minlength=counts.size)
-        return counts.reshape(self.shape)
+    def count(self, xy_chunks: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Occupied cells (sorted flat ids) and their point counts, over a stream of xy chunks."""
+        parts = [np.unique(self.cell_of(xy), return_counts=True) for xy in xy_chunks]
+        return summed_cells([cells for cells, _ in parts], [counts for _, counts in parts])
+
+
+def summed_cells(cells: list[np.ndarray], counts: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """Sorted distinct cell ids and the sum of their counts over several (cells, counts) parts."""
+    if not cells:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    unique, inverse = np.unique(np.concatenate(cells).astype(np.int64), return_inverse=True)
+    sums = np.zeros(len(unique), dtype=np.int64)
+    np.add.at(sums, inverse, np.concatenate(counts).astype(np.int64))
+    return unique, sums
 
 
 @dataclass(frozen=True)
@@ -63,11 +75,16 @@ class TilePlan:
 
     grid: DensityGrid
     tiles: tuple[TileRect, ...]
-    cell_tile: np.ndarray  # (nx*ny,) int32 tile id per cell, -1 where no tile (empty cells)
+    cells: np.ndarray       # (occupied,) sorted flat ids of the occupied cells
+    cell_tiles: np.ndarray  # (occupied,) int32 id of the tile holding each
 
     def tile_of(self, xy: np.ndarray) -> np.ndarray:
-        """The id of the tile whose core holds each point."""
-        return self.cell_tile[self.grid.cell_of(xy)]
+        """The id of the tile whose core holds each point (-1 for a point in a cell no tile holds)."""
+        ids = self.grid.cell_of(xy)
+        if len(self.cells) == 0:
+            return np.full(len(ids), -1, dtype=np.int32)
+        at = np.minimum(np.searchsorted(self.cells, ids), len(self.cells) - 1)
+        return np.where(self.cells[at] == ids, self.cell_tiles[at], -1).astype(np.int32)
 
     def bounds(self, tile_id: int) -> tuple[float, float, float, float]:
         """Core rectangle (xmin, ymin, xmax, ymax) in scan coordinates, half-open on the max side."""
@@ -95,9 +112,37 @@ class TilePlan:
         return core | ((x >= x0 - overlap) & (x < x1 + overlap) & (y >= y0 - overlap) & (y < y1 + overlap))
 
 
-def plan_tiles(grid: DensityGrid, counts: np.ndarray, max_points: int) -> TilePlan:
-    """Cut the grid into nominal tiles of 8x8 cells, quarter any holding more than max_points, drop empty ones."""
-    points, cells = summed_table(counts), summed_table(counts > 0)
+def plan_tiles(grid: DensityGrid, cells: np.ndarray, counts: np.ndarray, max_points: int) -> TilePlan:
+    """Cut the grid into nominal tiles of 8x8 cells, quarter any holding more than max_points, drop empty ones.
+
+    cells: (occupied,) sorted flat cell ids; counts: their points. Only occupied nominal tiles are visited,
+    in row-major order, so the work and memory follow the occupied area, not the extent."""
+    nx, ny = grid.shape
+    cells, counts = np.asarray(cells, dtype=np.int64), np.asarray(counts, dtype=np.int64)
+    keep = counts > 0
+    cells, counts = cells[keep], counts[keep]
+    i, j = cells // ny, cells % ny
+    blocks = (i // CELLS_PER_TILE) * (-(-ny // CELLS_PER_TILE)) + j // CELLS_PER_TILE
+    order = np.argsort(blocks, kind="stable")
+    starts = np.flatnonzero(np.diff(blocks[order], prepend=-1))
+    tiles: list[TileRect] = []
+    cell_tiles = np.full(len(cells), -1, dtype=np.int32)
+    for members in np.split(order, starts[1:]):
+        i0, j0 = int(i[members[0]] // CELLS_PER_TILE * CELLS_PER_TILE), int(j[members[0]] // CELLS_PER_TILE * CELLS_PER_TILE)
+        local = np.zeros((min(CELLS_PER_TILE, nx - i0), min(CELLS_PER_TILE, ny - j0)), dtype=np.int64)
+        local[i[members] - i0, j[members] - j0] = counts[members]
+        for rect in split_block(local, max_points):
+            tile = TileRect(rect.i0 + i0, rect.i1 + i0, rect.j0 + j0, rect.j1 + j0, rect.count, rect.occupied)
+            inside = (i[members] >= tile.i0) & (i[members] < tile.i1) & (j[members] >= tile.j0) & (j[members] < tile.j1)
+            cell_tiles[members[inside]] = len(tiles)
+            tiles.append(tile)
+    return TilePlan(grid, tuple(tiles), cells, cell_tiles)
+
+
+def split_block(counts: np.ndarray, max_points: int) -> list[TileRect]:
+    """Rectangles (in the block's own cells) covering every non-empty cell of a block's counts, quartered
+    while they hold more than max_points, in quadtree order."""
+    points, occupied = summed_table(counts), summed_table(counts > 0)
 
     def rect_count(i0: int, i1: int, j0: int, j1: int, summed: np.ndarray = points) -> int:
         return int(summed[i1, j1] - summed[i0, j1] - summed[i1, j0] + summed[i0, j0])
@@ -107,7 +152,7 @@ def plan_tiles(grid: DensityGrid, counts: np.ndarray, max_points: int) -> TilePl
         if n == 0:
             return []
         if n <= max_points or (i1 - i0 == 1 and j1 - j0 == 1):
-            return [TileRect(i0, i1, j0, j1, n, rect_count(i0, i1, j0, j1, cells))]
+            return [TileRect(i0, i1, j0, j1, n, rect_count(i0, i1, j0, j1, occupied))]
         im, jm = (i0 + i1 + 1) // 2, (j0 + j1 + 1) // 2
         parts = []
         for a0, a1 in ((i0, im), (im, i1)):
@@ -116,15 +161,7 @@ def plan_tiles(grid: DensityGrid, counts: np.ndarray, max_points: int) -> TilePl
                     parts += split(a0, a1, b0, b1)
         return parts
 
-    nx, ny = grid.shape
-    tiles: list[TileRect] = []
-    for i0 in range(0, nx, CELLS_PER_TILE):
-        for j0 in range(0, ny, CELLS_PER_TILE):
-            tiles += split(i0, min(i0 + CELLS_PER_TILE, nx), j0, min(j0 + CELLS_PER_TILE, ny))
-    cell_tile = np.full((nx, ny), -1, dtype=np.int32)
-    for tile_id, t in enumerate(tiles):
-        cell_tile[t.i0:t.i1, t.j0:t.j1] = tile_id
-    return TilePlan(grid, tuple(tiles), cell_tile.ravel())
+    return split(0, counts.shape[0], 0, counts.shape[1])
 
 
 def summed_table(values: np.ndarray) -> np.ndarray:
