@@ -11,6 +11,7 @@ from urllib.parse import urlsplit
 
 import dask
 from dask.distributed import Client, LocalCluster, WorkerPlugin, as_completed
+from distributed.scheduler import KilledWorker
 from tqdm import tqdm
 
 from pipeline.errors import PipelineError
@@ -120,6 +121,7 @@ def quiet_dask_logs() -> None:
     """Keep Dask's own logs to real errors: a failed task is reported once, by us, as one line."""
     logging.getLogger("distributed").setLevel(logging.ERROR)
     logging.getLogger("distributed.worker").setLevel(logging.CRITICAL)
+    logging.getLogger("distributed.scheduler").setLevel(logging.CRITICAL)  # "N workers died running task X": map_tasks says it
 
 
 class QuietWorkerLogs(WorkerPlugin):
@@ -152,6 +154,9 @@ def map_tasks(client: Client, function: Callable, items: Sequence[Any], *shared:
                     pending.cancel()
                 if isinstance(exc, PipelineError):
                     raise
+                if isinstance(exc, KilledWorker):
+                    raise PipelineError(f"{desc}: the workers running one task died again and again, most likely out "
+                                        "of memory: raise --memory-limit or lower --max-tile-points") from None
                 raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
             results[position[future.key]] = result
             points += weight(result)
