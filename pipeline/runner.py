@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import time
 from contextlib import nullcontext
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib.metadata import version
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -24,7 +24,7 @@ from pipeline.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_su
 from pipeline.validate import check_run
 from pipeline.workdir import WorkDir
 from pipeline.writers import OUTPUT_SUFFIXES, OutputMeta, TilePart, write_output
-from tiling.budgets import coverage_weights, pooled_median, saliency_weights, target_count, tile_budgets, voxels_at
+from tiling.budgets import coverage_weights, even_spacing, pooled_median, saliency_weights, target_count, tile_budgets, voxels_at
 from tiling.bucket import row_ranges
 from tiling.plan import DensityGrid, TilePlan, plan_tiles, summed_cells
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
@@ -122,8 +122,9 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, cl
         if config.method in EVEN_SPACING:  # tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
         else:  # saliency shared as one pass would; a point in every voxel of the hole radius, so every tile
-            weights, fill = scan_fill(surveys)  # keeps enough to cover its holes, however flat
-            floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)
+            weights, fill = scan_fill(surveys)  # keeps enough to cover its holes, however flat; no radius
+            fill = replace(fill, cover_radius=max(fill.cover_radius, even_spacing(occupied, sizes, target)))
+            floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)  # finer than the count covers
     budgets = tile_budgets(counts, config.ratio, floors=floors, weights=weights)
     jobs = make_jobs(work, plan, slices, budgets, config, fill)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]

@@ -161,3 +161,16 @@ def test_voxels_at_a_measured_size_are_the_counts_and_fall_between_them():
     np.testing.assert_allclose(voxels_at(occupied, sizes, sizes[2]), occupied[:, 2])
     between = voxels_at(occupied, sizes, sizes[1] * np.sqrt(2))[0]
     assert occupied[0, 2] < between < occupied[0, 1]
+
+
+def test_even_spacing_is_the_voxel_edge_whose_scan_total_is_the_target():
+    from tiling.budgets import even_spacing, occupied_voxels, voxels_at
+
+    rng = np.random.default_rng(7)
+    planes = [np.column_stack([rng.uniform(0, 10, size=(n, 2)) + [20 * k, 0], np.zeros(n)])
+              for k, n in enumerate((30_000, 3_000))]
+    sizes = 0.1 * 2.0 ** np.arange(0, 6)
+    occupied = np.array([occupied_voxels(plane, sizes) for plane in planes])
+    edge = even_spacing(occupied, sizes, target=1_000)
+    assert sizes[0] < edge < sizes[-1]
+    assert abs(voxels_at(occupied, sizes, edge).sum() - 1_000) < 0.1 * 1_000

@@ -72,10 +72,15 @@ def coverage_weights(occupied: np.ndarray, sizes: np.ndarray, target: int) -> np
     occupied: (tiles, levels) counts at `sizes` (ascending). A global FPS or voxel thinning keeps about one
     point per such voxel, so budgets in proportion to these counts make tiles agree on one spacing.
     """
+    return voxels_at(occupied, sizes, even_spacing(occupied, sizes, target))
+
+
+def even_spacing(occupied: np.ndarray, sizes: np.ndarray, target: int) -> float:
+    """The voxel edge at which the whole scan has `target` occupied voxels (log-log interpolated): the
+    spacing of an even thinning to `target` points, and the finest any `target` points can cover."""
     totals = occupied.sum(axis=0).astype(np.float64)  # falls as the size grows
     log_sizes, log_totals = np.log(sizes), np.log(np.maximum(totals, 1))
-    at = float(np.interp(-np.log(max(target, 1)), -log_totals, log_sizes))  # interp wants ascending x
-    return voxels_at(occupied, sizes, float(np.exp(at)))
+    return float(np.exp(np.interp(-np.log(max(target, 1)), -log_totals, log_sizes)))  # interp wants ascending x
 
 
 def voxels_at(occupied: np.ndarray, sizes: np.ndarray, size: float) -> np.ndarray:
