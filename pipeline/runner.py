@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import time
 from contextlib import nullcontext
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
 from typing import Iterator, Sequence
@@ -122,9 +122,8 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, cl
         if config.method in EVEN_SPACING:  # tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
         else:  # saliency shared as one pass would; a point in every voxel of the hole radius, so every tile
-            weights, fill = scan_fill(surveys)  # keeps enough to cover its holes, however flat; no radius
-            fill = replace(fill, cover_radius=max(fill.cover_radius, even_spacing(occupied, sizes, target)))
-            floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)  # finer than the count covers
+            weights, fill = scan_fill(surveys, occupied, sizes, target)  # keeps enough to cover its holes
+            floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)
     budgets = tile_budgets(counts, config.ratio, floors=floors, weights=weights)
     jobs = make_jobs(work, plan, slices, budgets, config, fill)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]
@@ -211,14 +210,16 @@ def survey_scan(client: Client, plan: TilePlan, slices: list[list[Slice]], work:
     return surveys, np.array(sizes)
 
 
-def scan_fill(surveys: list[TileSurvey]) -> tuple[np.ndarray, ScanFill]:
+def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray,
+              target: int) -> tuple[np.ndarray, ScanFill]:
     """Tile weights for the budgets and the fill settings that make tiles keep points as one stratified
     pass over the whole scan would: weights 1 + loss / the scan's mean loss, and a hole radius of
-    COVER_SPACINGS times the scan's typical pick spacing."""
+    COVER_SPACINGS times the scan's typical pick spacing, but never finer than the even spacing `target`
+    points can cover (below it the floors would exceed the target and tiles cut their hole cover short)."""
     weights, scales = saliency_weights(np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys]),
                                        np.array([s.loss_sum for s in surveys]))
     spacing = pooled_median([s.spacings for s in surveys], np.array([s.picks for s in surveys]))
-    return weights, ScanFill(scales, COVER_SPACINGS * spacing)
+    return weights, ScanFill(scales, max(COVER_SPACINGS * spacing, even_spacing(occupied, sizes, target)))
 
 
 def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray,
