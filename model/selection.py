@@ -23,11 +23,14 @@ class FillContext:
     """What the whole scan decides for one tile's fill (a pipeline run sets it from every tile's survey).
 
     Keep weights are 1 + detail_scale * loss.relative (detail_scale: the tile's loss level over the
-    scan's); holes are points farther than cover_radius (scan units) from every pick."""
+    scan's); holes are points farther than cover_radius (scan units) from every pick. `kept` is how many
+    picks the run keeps (the tile's budget): fill and cover are planned for that prefix, and picks asked
+    beyond it (the stitch's seam reserve) come after it, so cutting the reserve never opens a hole."""
 
     loss: FillLoss
     detail_scale: float
     cover_radius: float
+    kept: int | None = None
 
 
 @dataclass(frozen=True)

@@ -10,7 +10,8 @@ and holes, FPS's is that it flattens the density pattern. This method takes each
    curve keeps one: the density pattern of random sampling without its clumps;
 2. cover: points still farther than `COVER_SPACINGS` typical output spacings from every pick (holes in
    sparse areas: far ranges, isolated objects, stray returns) are covered by farthest point sampling
-   among themselves, and the fill gives up as many picks, so the count stays exact.
+   continued from the fill (largest gap first), and the fill gives up as many picks, so the count
+   stays exact and no hole is left open while the budget can close it.
 
 Picks come in priority order (fill picks in radical-inverse order along the curve, hole picks in FPS
 order, interleaved by rank), so a prefix is itself a spread-out, coarser result.
@@ -21,14 +22,15 @@ from typing import Callable
 
 import numpy as np
 from pykdtree.kdtree import KDTree
+from scipy.spatial import cKDTree
 
-from model.baselines import fps_simplify
 from model.geometry import morton_order, point_features
 from model.metrics import nearest
 from model.selection import FillContext, FillLoss, Selection, Tile, topped_up
 
 COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
 SPACING_QUANTILES = np.linspace(0.0, 1.0, 65)  # a tile reports its picks' spacing as these quantiles
+MAX_COVER_ROUNDS = 6  # fill-and-cover rounds before the cover is cut to what the fill leaves
 
 
 LossOf = Callable[[Tile, int], FillLoss]
@@ -60,27 +62,43 @@ def measured_detail_simplify(tile: Tile, budget: int) -> Selection:
 def stratified_selection(tile: Tile, budget: int, loss_of: LossOf) -> Selection:
     """The fill and cover of the module doc. For a tile on its own (no `tile.context`), `loss_of(tile,
     budget)` sets the keep weights 1 + relative loss and the cover radius is COVER_SPACINGS typical
-    spacings of a trial fill; a pipeline run's context holds the scan-wide weights and radius instead."""
+    spacings of a trial fill; a pipeline run's context holds the scan-wide weights and radius instead,
+    and the prefix the run keeps (fill and cover are planned for it; the picks after it are random)."""
     context = tile.context
     budget = min(budget, tile.core_count)
     if budget == 0:
         return Selection.of(tile, np.empty(0, dtype=np.int64))
+    planned = budget if context is None or context.kept is None else min(budget, context.kept)
     core = np.flatnonzero(tile.core)
     curve = core[morton_order(tile.xyz[core])]  # core points along a Z-order curve
     rng = np.random.default_rng(tile.seed)
     phase = rng.random()
-    weights = fill_weights(loss_of(tile, budget), 1.0) if context is None else fill_weights(context.loss,
-                                                                                             context.detail_scale)
+    weights = fill_weights(loss_of(tile, planned), 1.0) if context is None else fill_weights(context.loss,
+                                                                                              context.detail_scale)
     curve_weights = curve_of(weights, curve)
-    trial = weighted_picks(curve, curve_weights, budget, phase)
+    trial = weighted_picks(curve, curve_weights, planned, phase)
     radius = COVER_SPACINGS * typical_spacing(tile.xyz[trial]) if context is None else context.cover_radius
-    holes = len(hole_cover(tile.xyz, trial, core, radius))
-    fill = weighted_picks(curve, curve_weights, budget - holes, phase)
-    rest = tile.core.copy()
-    rest[fill] = False
-    cover = hole_cover(tile.xyz, fill, np.flatnonzero(rest), radius)[:holes]
+    fill, cover = filled_and_covered(tile, curve, curve_weights, planned, phase, radius,
+                                     len(hole_cover(tile.xyz, trial, core, radius)))
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
     return Selection.of(tile, topped_up(order, core, budget, rng))
+
+
+def filled_and_covered(tile: Tile, curve: np.ndarray, curve_weights: np.ndarray | None, budget: int, phase: float,
+                       radius: float, holes: int) -> tuple[np.ndarray, np.ndarray]:
+    """A fill of budget - h picks and the cover of the holes it leaves, with h the cover's own size: the
+    fill gives up `holes` picks (a first guess, from a fill of the whole budget), and gives up more while
+    the cover of what it leaves needs more (a smaller fill leaves more holes; two or three rounds
+    settle). The cover is cut only when covering alone would exceed the budget."""
+    for _ in range(MAX_COVER_ROUNDS):
+        fill = weighted_picks(curve, curve_weights, budget - holes, phase)
+        rest = tile.core.copy()
+        rest[fill] = False
+        cover = hole_cover(tile.xyz, fill, np.flatnonzero(rest), radius)
+        if len(cover) <= holes or holes == budget:
+            break
+        holes = min(len(cover), budget)
+    return fill, cover[:budget - len(fill)]
 
 
 def fill_weights(loss: FillLoss, detail_scale: float) -> np.ndarray | None:
@@ -166,23 +184,28 @@ def typical_spacing(points: np.ndarray) -> float:
 
 
 def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius: float) -> np.ndarray:
-    """Candidates, in FPS order, that cover every candidate farther than `radius` from the kept points:
-    FPS over those far candidates, cut at the shortest prefix that brings each within `radius` of a pick."""
+    """Candidates that bring every candidate within `radius` of a pick, largest gap first: farthest point
+    sampling continued from the kept points (each candidate's gap starts as its distance to them), stopped
+    once no gap exceeds `radius`. Only candidates farther than `radius` from the kept points take part."""
     if len(kept) == 0 or len(candidates) == 0 or radius <= 0:
         return np.empty(0, dtype=np.int64)
-    far = candidates[nearest_distance(xyz[kept], xyz[candidates]) > radius]
+    distance = nearest_distance(xyz[kept], xyz[candidates])
+    far = candidates[distance > radius]
     if len(far) == 0:
         return far.astype(np.int64)
-    local = Tile(xyz[far], np.ones(len(far), dtype=bool), np.zeros(3), seed=0)
-    order = far[fps_simplify(local, len(far)).indices]
-    low, high = 1, len(order)  # the whole order covers (each point is its own pick); find the shortest prefix
-    while low < high:
-        middle = (low + high) // 2
-        if nearest_distance(xyz[order[:middle]], xyz[far]).max() <= radius:
-            high = middle
-        else:
-            low = middle + 1
-    return order[:low]
+    gap = distance[distance > radius]
+    points = np.ascontiguousarray(xyz[far], dtype=np.float64)
+    tree = cKDTree(points)
+    picks: list[int] = []
+    while len(gap):
+        pick = int(np.argmax(gap))
+        if gap[pick] <= radius:
+            break
+        picks.append(pick)
+        reached = np.asarray(tree.query_ball_point(points[pick], float(gap[pick])), dtype=np.int64)  # gaps it can shrink
+        gap[reached] = np.minimum(gap[reached], np.linalg.norm(points[reached] - points[pick], axis=1))
+        gap[pick] = 0.0
+    return far[np.asarray(picks, dtype=np.int64)]
 
 
 def nearest_distance(points: np.ndarray, queries: np.ndarray) -> np.ndarray:

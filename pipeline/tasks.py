@@ -77,7 +77,8 @@ def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     tile, seen = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap, job.seed)
     if job.survey_path is not None:
         loss = load_fill_loss(Path(job.survey_path))
-        tile = Tile(tile.xyz, tile.core, tile.centre, tile.seed, FillContext(loss, job.detail_scale, job.cover_radius))
+        context = FillContext(loss, job.detail_scale, job.cover_radius, kept=job.budget)
+        tile = Tile(tile.xyz, tile.core, tile.centre, tile.seed, context)
     selection = get_simplifier(job.method)(tile, min(job.budget + job.reserve, tile.core_count))
     write_atomically(Path(job.result_path),
                      lambda tmp: save_npz(tmp, rows=seen[selection.indices], xyz=selection.xyz + tile.centre))

@@ -4,6 +4,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from model import Tile, get_simplifier
+from model.selection import FillContext, FillLoss
 from model.stratified import hole_cover, radical_inverse_order, systematic_picks, typical_spacing
 
 
@@ -91,3 +92,40 @@ def test_thin_pole_on_a_dense_plane_keeps_its_whole_height():
             for m in ("stratified", "random")}
     spacing = typical_spacing(tile.xyz[get_simplifier("stratified")(tile, budget).indices])
     assert gaps["stratified"] <= 2 * spacing * (1 + 1e-9) < gaps["random"]
+
+
+def scattered_returns_over_a_plane(seed: int = 5) -> Tile:
+    """A dense 40 x 40 m plane and 3,000 stray returns scattered 1-9 m above it: many small holes, so a
+    fill that gives points up to the cover leaves more holes than the fill of the whole budget did."""
+    rng = np.random.default_rng(seed)
+    plane = np.column_stack([rng.uniform(0, 40, size=(80_000, 2)), rng.normal(0, 0.01, 80_000)])
+    strays = np.column_stack([rng.uniform(0, 40, size=(3_000, 2)), rng.uniform(1, 9, 3_000)])
+    xyz = np.concatenate([plane, strays])
+    return Tile(xyz - xyz.mean(0), np.ones(len(xyz), bool), np.zeros(3), seed=2)
+
+
+@pytest.mark.parametrize("method", ["stratified", "learned"])
+def test_kept_prefix_leaves_no_point_beyond_the_radius_when_a_reserve_follows(method):
+    """A run keeps `kept` picks of budget + reserve: those alone bring every point within the cover radius,
+    however many holes the shrunk fill opens (the old cover was cut to a first guess of their number, and
+    the reserve cut its tail: stray returns and wire stretches were left metres from any pick)."""
+    tile = scattered_returns_over_a_plane()
+    kept, reserve, radius = 4_000, 200, 1.2
+    context = FillContext(FillLoss(None, 0.0), 0.0, radius, kept=kept)
+    order = get_simplifier(method)(Tile(tile.xyz, tile.core, tile.centre, tile.seed, context), kept + reserve).indices
+    assert len(order) == kept + reserve == len(np.unique(order))
+    gap = cKDTree(tile.xyz[order[:kept]]).query(tile.xyz)[0]
+    assert gap.max() <= radius
+
+
+def test_hole_cover_closes_the_largest_gaps_first():
+    """Continued from the kept points: each cover pick is the point farthest from the kept points and the
+    earlier picks, so those distances never grow along the cover, and the last is still beyond the radius."""
+    tile = scattered_returns_over_a_plane(6)
+    kept = np.arange(0, 80_000, 20)  # the plane only
+    candidates = np.setdiff1d(np.arange(len(tile.xyz)), kept)
+    cover = hole_cover(tile.xyz, kept, candidates, 1.0)
+    gaps = [cKDTree(tile.xyz[np.concatenate([kept, cover[:j]])]).query(tile.xyz[cover[j]])[0]
+            for j in range(0, len(cover), max(1, len(cover) // 50))]
+    assert np.all(np.diff(gaps) <= 1e-12) and gaps[-1] > 1.0
+    assert gaps[0] == cKDTree(tile.xyz[kept]).query(tile.xyz[candidates])[0].max()
