@@ -78,20 +78,20 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf) -> Selection:
     curve_weights = curve_of(weights, curve)
     trial = weighted_picks(curve, curve_weights, planned, phase)
     radius = COVER_SPACINGS * typical_spacing(tile.xyz[trial]) if context is None else context.cover_radius
-    fill, cover = filled_and_covered(tile, curve, curve_weights, planned, phase, radius,
-                                     len(hole_cover(tile.xyz, trial, core, radius)))
+    fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase), planned,
+                                     radius, len(hole_cover(tile.xyz, trial, core, radius)))
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
     return Selection.of(tile, topped_up(order, core, budget, rng))
 
 
-def filled_and_covered(tile: Tile, curve: np.ndarray, curve_weights: np.ndarray | None, budget: int, phase: float,
-                       radius: float, holes: int) -> tuple[np.ndarray, np.ndarray]:
-    """A fill of budget - h picks and the cover of the holes it leaves, with h the cover's own size: the
-    fill gives up `holes` picks (a first guess, from a fill of the whole budget), and gives up more while
-    the cover of what it leaves needs more (a smaller fill leaves more holes; two or three rounds
-    settle). The cover is cut only when covering alone would exceed the budget."""
+def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget: int, radius: float,
+                       holes: int) -> tuple[np.ndarray, np.ndarray]:
+    """A fill of budget - h core points (`fill_of(count)`) and the cover of the holes it leaves, with h the
+    cover's own size: the fill gives up `holes` picks (a first guess, from a fill of the whole budget),
+    and gives up more while the cover of what it leaves needs more (a smaller fill leaves more holes;
+    two or three rounds settle). The cover is cut only when covering alone would exceed the budget."""
     for _ in range(MAX_COVER_ROUNDS):
-        fill = weighted_picks(curve, curve_weights, budget - holes, phase)
+        fill = fill_of(budget - holes)
         rest = tile.core.copy()
         rest[fill] = False
         cover = hole_cover(tile.xyz, fill, np.flatnonzero(rest), radius)
@@ -185,11 +185,12 @@ def typical_spacing(points: np.ndarray) -> float:
 
 def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius: float) -> np.ndarray:
     """Candidates that bring every candidate within `radius` of a pick, largest gap first: farthest point
-    sampling continued from the kept points (each candidate's gap starts as its distance to them), stopped
-    once no gap exceeds `radius`. Only candidates farther than `radius` from the kept points take part."""
-    if len(kept) == 0 or len(candidates) == 0 or radius <= 0:
+    sampling continued from the kept points (each candidate's gap starts as its distance to them; with
+    none kept, plain FPS from the first candidate), stopped once no gap exceeds `radius`. Only candidates
+    farther than `radius` from the kept points take part."""
+    if len(candidates) == 0 or radius <= 0:
         return np.empty(0, dtype=np.int64)
-    distance = nearest_distance(xyz[kept], xyz[candidates])
+    distance = nearest_distance(xyz[kept], xyz[candidates]) if len(kept) else np.full(len(candidates), np.inf)
     far = candidates[distance > radius]
     if len(far) == 0:
         return far.astype(np.int64)
@@ -202,7 +203,9 @@ def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius
         if gap[pick] <= radius:
             break
         picks.append(pick)
-        reached = np.asarray(tree.query_ball_point(points[pick], float(gap[pick])), dtype=np.int64)  # gaps it can shrink
+        reach = float(gap[pick])  # only points within the largest gap can come closer
+        reached = (np.asarray(tree.query_ball_point(points[pick], reach), dtype=np.int64) if np.isfinite(reach)
+                   else np.arange(len(points)))
         gap[reached] = np.minimum(gap[reached], np.linalg.norm(points[reached] - points[pick], axis=1))
         gap[pick] = 0.0
     return far[np.asarray(picks, dtype=np.int64)]

@@ -129,3 +129,18 @@ def test_hole_cover_closes_the_largest_gaps_first():
             for j in range(0, len(cover), max(1, len(cover) // 50))]
     assert np.all(np.diff(gaps) <= 1e-12) and gaps[-1] > 1.0
     assert gaps[0] == cKDTree(tile.xyz[kept]).query(tile.xyz[candidates])[0].max()
+
+
+def test_a_budget_too_small_for_the_holes_is_spent_as_farthest_point_sampling():
+    """When covering at the radius would take more than the whole budget, no fill is left and every pick
+    covers (FPS from scratch): the gaps stay FPS's, not those of the random top-up that filled in before."""
+    rng = np.random.default_rng(8)
+    xyz = rng.uniform(0, 10, size=(4_000, 3))
+    tile = Tile(xyz - xyz.mean(0), np.ones(len(xyz), bool), np.zeros(3), seed=3)
+    context = FillContext(FillLoss(None, 0.0), 0.0, 0.05, kept=60)
+    picks = get_simplifier("stratified")(Tile(tile.xyz, tile.core, tile.centre, tile.seed, context), 60).indices
+    assert len(np.unique(picks)) == 60
+    gap = cKDTree(tile.xyz[picks]).query(tile.xyz)[0].max()
+    fps_gap = cKDTree(tile.xyz[get_simplifier("fps")(tile, 60).indices]).query(tile.xyz)[0].max()
+    random_gap = cKDTree(tile.xyz[get_simplifier("random")(tile, 60).indices]).query(tile.xyz)[0].max()
+    assert gap <= 1.2 * fps_gap < random_gap
