@@ -117,7 +117,9 @@ def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, met
             return
         note_worker_cap(settings.workers, scheduler)
         report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch,
-                          show_progress=not quiet and not log_json and sys.stderr.isatty(), scheduler=scheduler)
+                          show_progress=not quiet and not log_json and sys.stderr.isatty(), scheduler=scheduler,
+                          note=None if quiet or log_json else lambda line: click.echo(f"pipeline: note: {line}",
+                                                                                      err=True))
     except PipelineError as exc:
         if log_json:
             log_json_line({"event": "failed", "input": [str(p) for p in inputs], "error": str(exc)})

@@ -35,6 +35,11 @@ class RunConfig:
     seed: int = 0
     allow_geographic: bool = False  # run on coordinates in degrees (tile sizes and distances become degrees)
 
+    def in_unit(self, metres_per_unit: float) -> "RunConfig":
+        """The same settings with the lengths (tile size, overlap, seam tolerance: metres) in a scan unit."""
+        return replace(self, tile_size=self.tile_size / metres_per_unit, overlap=self.overlap / metres_per_unit,
+                       seam_tolerance=self.seam_tolerance / metres_per_unit)
+
     def validated(self) -> "RunConfig":
         """Return self after checking every value, raising PipelineError naming the bad one."""
         if not (isinstance(self.ratio, (int, float)) and math.isfinite(self.ratio) and 0 < self.ratio <= 1):

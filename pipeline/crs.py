@@ -1,6 +1,8 @@
-"""The scan's coordinate reference system: its WKT from the LAS VLRs, and whether it is in degrees."""
+"""The scan's coordinate reference system: its WKT from the LAS VLRs, whether it is in degrees, and the
+length unit of its horizontal axes (lengths given in metres are converted to it)."""
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import laspy
@@ -61,3 +63,45 @@ def crs_label(header: laspy.LasHeader) -> str:
         return "an unparsed CRS" if crs_wkt(header) else "no CRS"
     code = crs.to_epsg()
     return f"EPSG:{code} ({crs.name})" if code else repr(crs.name)
+
+
+@dataclass(frozen=True)
+class LengthUnit:
+    """The unit of a scan's horizontal coordinates: its name, metres per unit, and whether it was assumed
+    (no CRS, an unparsed one, or a geographic one, whose degrees are taken as they are)."""
+
+    name: str
+    metres: float
+    assumed: bool
+
+    def of_metres(self, metres: float) -> float:
+        """A length given in metres, in this unit."""
+        return metres / self.metres
+
+
+def length_unit(header: laspy.LasHeader) -> LengthUnit:
+    """The header's horizontal length unit from its CRS (pyproj's axis unit and conversion factor: metre,
+    foot, US survey foot, ...); metres where the CRS gives none, and no conversion for degrees."""
+    crs = parsed_crs(header)
+    if crs is None:
+        return LengthUnit("metre", 1.0, assumed=True)
+    if crs.is_geographic:
+        return LengthUnit("degree", 1.0, assumed=True)
+    horizontal = [axis for axis in crs.axis_info if axis.direction.lower() in ("east", "north", "west", "south")]
+    for axis in horizontal or crs.axis_info:
+        if axis.unit_conversion_factor and axis.unit_name:
+            return LengthUnit(axis.unit_name, float(axis.unit_conversion_factor), assumed=False)
+    return LengthUnit("metre", 1.0, assumed=True)
+
+
+def unit_note(unit: LengthUnit, crs_name: str) -> str | None:
+    """The one line a run says about units: lengths converted to the scan's unit, or metres assumed
+    (nothing for metres, or for degrees, which the degree check speaks about)."""
+    if unit.name == "degree":
+        return None
+    if unit.assumed:
+        return "the scan has no usable CRS: its coordinates are taken as metres"
+    if unit.metres == 1.0:
+        return None
+    return (f"lengths are in metres and the scan is in {unit.name} ({crs_name}): --tile-size, --overlap and "
+            f"--seam-tolerance are converted (1 m = {unit.of_metres(1.0):.4g} {unit.name})")

@@ -6,7 +6,7 @@ from contextlib import nullcontext
 from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import Callable, Iterator, Sequence
 
 import numpy as np
 from dask.distributed import Client
@@ -14,7 +14,7 @@ from dask.distributed import Client
 from model.registry import EVEN_SPACING, FILL_LOSSES
 from model.stratified import COVER_SPACINGS
 from pipeline.config import RunConfig, parse_size
-from pipeline.crs import crs_wkt
+from pipeline.crs import crs_label, crs_wkt, length_unit, unit_note
 from pipeline.errors import Interrupted, PipelineError, signal_exit_code
 from pipeline.atomic import remove_stale_temporaries
 from pipeline.execute import cluster, map_tasks
@@ -60,9 +60,11 @@ def default_output(first_input: Path) -> Path:
 
 def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: RunConfig, overwrite: bool = False,
              scratch: str | Path | None = None, show_progress: bool = True, scheduler: str | None = None,
-             client: Client | None = None) -> RunReport:
+             client: Client | None = None, note: Callable[[str], None] | None = None) -> RunReport:
     """Simplify one scan (one or more files) to `output`; the Python twin of `pipeline run`.
 
+    Lengths in `config` are metres, converted to the scan's horizontal unit (its CRS's: foot, US survey
+    foot, ...); `note` hears that once, or that metres were assumed for lack of a CRS.
     Runs on `client` if given, else on the cluster at `scheduler`, else on a fresh local cluster.
     Finished pieces and tiles are kept in a work folder until the output is in place, so the same
     command re-run after a crash or a kill resumes; any other failure names that folder.
@@ -73,6 +75,10 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     output = Path(output) if output is not None else default_output(scan.paths[0])
     check_output(output, [Path(p) for p in inputs], overwrite, OUTPUT_SUFFIXES)
     check_run(scan, config.allow_geographic, Path(scratch or output.parent))
+    unit = length_unit(scan.header)
+    config = config.in_unit(unit.metres)
+    if note is not None and (said := unit_note(unit, crs_label(scan.header))):
+        note(said)
     if target_count(config.ratio, scan.point_count) == 0:
         raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {scan.point_count} points")
     remove_stale_temporaries(output)
