@@ -25,7 +25,7 @@ from pipeline.validate import check_run
 from pipeline.workdir import WorkDir
 from pipeline.writers import OUTPUT_SUFFIXES, OutputMeta, TilePart, write_output
 from tiling.budgets import coverage_weights, even_spacing, pooled_median, saliency_weights, target_count, tile_budgets, voxels_at
-from tiling.bucket import row_ranges
+from tiling.bucket import cell_boxes, row_ranges
 from tiling.plan import DensityGrid, TilePlan, plan_tiles, summed_cells
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
 from tiling.store import Slice, TileStore
@@ -180,11 +180,14 @@ def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], work: WorkDir, 
     buckets = [finished[piece.number] for piece in pieces]
     cells, counts = summed_cells([cells for cells, _ in buckets], [np.diff(starts) for _, starts in buckets])
     plan = plan_tiles(grid, cells, counts, config.max_tile_points)
+    boxes = cell_boxes([cells for cells, _ in buckets], grid.shape[1])
     slices: list[list[Slice]] = []
-    for tile_id in range(len(plan.tiles)):
+    for tile_id in range(len(plan.tiles)):  # only the pieces a halo meets (not every piece for every tile)
+        i0, i1, j0, j1 = plan.halo_cell_rect(tile_id, config.overlap)
+        meets = np.flatnonzero((boxes[:, 0] < i1) & (boxes[:, 1] > i0) & (boxes[:, 2] < j1) & (boxes[:, 3] > j0))
         cell_ranges = plan.halo_cell_ranges(tile_id, config.overlap)
-        slices.append([Slice(piece.number, int(lo), int(hi)) for piece, (cells, starts) in zip(pieces, buckets)
-                       for lo, hi in row_ranges(cells, starts, cell_ranges)])
+        slices.append([Slice(pieces[k].number, int(lo), int(hi)) for k in meets
+                       for lo, hi in row_ranges(*buckets[k], cell_ranges)])
     return plan, slices
 
 

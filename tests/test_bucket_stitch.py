@@ -2,7 +2,7 @@
 import numpy as np
 from scipy.spatial import cKDTree
 
-from tiling.bucket import bucket_by_cell, row_ranges
+from tiling.bucket import bucket_by_cell, cell_boxes, row_ranges
 from tiling.plan import DensityGrid, plan_tiles, summed_cells
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
 import tiling.store as store_module
@@ -120,3 +120,27 @@ def test_seam_pass_removes_cross_tile_pairs_and_keeps_counts():
     assert len(rejections[1]) == 30 and 0 not in rejections
     distances, _ = cKDTree(kept[0]).query(kept[1])
     assert distances.min() >= tolerance
+
+
+def test_a_halo_that_misses_a_pieces_box_has_no_rows_in_it():
+    """The runner asks only the pieces whose cell boxes a halo meets: every other piece gives no rows."""
+    rng = np.random.default_rng(4)
+    grid = DensityGrid((0.0, 0.0), 1.0, (200, 150))
+    pieces = []
+    for k in range(12):  # strips of a drive: each piece in its own stretch of the grid
+        xy = np.column_stack([rng.uniform(15 * k, 15 * k + 25, 500), rng.uniform(0, 40 + 8 * k, 500)])
+        cells = np.unique(grid.cell_of(xy))
+        pieces.append((cells, np.arange(len(cells) + 1) * 3))
+    boxes = cell_boxes([cells for cells, _ in pieces] + [np.empty(0, dtype=np.int64)], grid.shape[1])
+    assert (boxes[-1] == 0).all()
+    plan = plan_tiles(grid, *summed_cells([c for c, _ in pieces], [np.diff(s) for _, s in pieces]), 400)
+    asked = found = 0
+    for tile_id in range(len(plan.tiles)):
+        i0, i1, j0, j1 = plan.halo_cell_rect(tile_id, 2.0)
+        ranges = plan.halo_cell_ranges(tile_id, 2.0)
+        for k, (cells, starts) in enumerate(pieces):
+            meets = boxes[k, 0] < i1 and boxes[k, 1] > i0 and boxes[k, 2] < j1 and boxes[k, 3] > j0
+            has_rows = len(row_ranges(cells, starts, ranges)) > 0
+            assert meets or not has_rows
+            asked, found = asked + meets, found + has_rows
+    assert found <= asked < len(plan.tiles) * len(pieces) / 2  # most pairs are skipped

@@ -48,3 +48,14 @@ def row_ranges(cells: np.ndarray, starts: np.ndarray, cell_ranges: np.ndarray) -
     merged_hi = np.zeros(group[-1] + 1, dtype=np.int64)
     np.maximum.at(merged_hi, group, hi)
     return np.column_stack([lo[joined], merged_hi])
+
+
+def cell_boxes(piece_cells: list[np.ndarray], ny: int) -> np.ndarray:
+    """(pieces, 4) cells [i0, i1) x [j0, j1) bounding each piece's occupied cells (flat ids i * ny + j);
+    an empty piece gets an empty box. A tile's halo meets only the pieces whose boxes it meets."""
+    boxes = np.zeros((len(piece_cells), 4), dtype=np.int64)
+    for k, cells in enumerate(piece_cells):
+        if len(cells):
+            i, j = np.divmod(cells, ny)
+            boxes[k] = i.min(), i.max() + 1, j.min(), j.max() + 1
+    return boxes

@@ -92,13 +92,16 @@ class TilePlan:
         (ox, oy), c = self.grid.origin, self.grid.cell
         return ox + t.i0 * c, oy + t.j0 * c, ox + t.i1 * c, oy + t.j1 * c
 
-    def halo_cell_ranges(self, tile_id: int, overlap: float) -> np.ndarray:
-        """Flat cell-id ranges [lo, hi), one per grid row, of every cell within `overlap` of the tile's core."""
+    def halo_cell_rect(self, tile_id: int, overlap: float) -> tuple[int, int, int, int]:
+        """Cells [i0, i1) x [j0, j1) within `overlap` of the tile's core, clipped to the grid."""
         t, ring = self.tiles[tile_id], int(np.ceil(overlap / self.grid.cell))
         nx, ny = self.grid.shape
-        i0, i1 = max(t.i0 - ring, 0), min(t.i1 + ring, nx)
-        j0, j1 = max(t.j0 - ring, 0), min(t.j1 + ring, ny)
-        rows = np.arange(i0, i1, dtype=np.int64) * ny
+        return max(t.i0 - ring, 0), min(t.i1 + ring, nx), max(t.j0 - ring, 0), min(t.j1 + ring, ny)
+
+    def halo_cell_ranges(self, tile_id: int, overlap: float) -> np.ndarray:
+        """Flat cell-id ranges [lo, hi), one per grid row, of every cell within `overlap` of the tile's core."""
+        i0, i1, j0, j1 = self.halo_cell_rect(tile_id, overlap)
+        rows = np.arange(i0, i1, dtype=np.int64) * self.grid.shape[1]
         return np.column_stack([rows + j0, rows + j1])
 
     def core_mask(self, tile_id: int, xyz: np.ndarray) -> np.ndarray:
