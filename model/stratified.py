@@ -18,6 +18,7 @@ order, interleaved by rank), so a prefix is itself a spread-out, coarser result.
 """
 from __future__ import annotations
 
+import heapq
 from typing import Callable
 
 import numpy as np
@@ -88,8 +89,10 @@ def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget:
                        holes: int) -> tuple[np.ndarray, np.ndarray]:
     """A fill of budget - h core points (`fill_of(count)`) and the cover of the holes it leaves, with h the
     cover's own size: the fill gives up `holes` picks (a first guess, from a fill of the whole budget),
-    and gives up more while the cover of what it leaves needs more (a smaller fill leaves more holes;
-    two or three rounds settle). The cover is cut only when covering alone would exceed the budget."""
+    and gives up more while the cover of what it leaves needs more (a smaller fill leaves more holes).
+    Each retry gives up the shortfall twice over (the holes grow about as fast again as the fill shrinks),
+    so one retry nearly always settles; picks the cover leaves unused are topped up by the caller. The
+    cover is cut only when covering alone would exceed the budget."""
     for _ in range(MAX_COVER_ROUNDS):
         fill = fill_of(budget - holes)
         rest = tile.core.copy()
@@ -97,7 +100,7 @@ def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget:
         cover = hole_cover(tile.xyz, fill, np.flatnonzero(rest), radius)
         if len(cover) <= holes or holes == budget:
             break
-        holes = min(len(cover), budget)
+        holes = min(2 * len(cover) - holes, budget)
     return fill, cover[:budget - len(fill)]
 
 
@@ -197,16 +200,23 @@ def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius
     gap = distance[distance > radius]
     points = np.ascontiguousarray(xyz[far], dtype=np.float64)
     tree = cKDTree(points)
+    largest = [(-g, i) for i, g in enumerate(gap.tolist())]  # a max-heap of gaps, refreshed lazily (gaps only shrink)
+    heapq.heapify(largest)
     picks: list[int] = []
-    while len(gap):
-        pick = int(np.argmax(gap))
+    while largest:
+        stale, pick = heapq.heappop(largest)
+        if -stale != gap[pick]:  # shrunk since pushed: push its current gap and look again
+            if gap[pick] > radius:
+                heapq.heappush(largest, (-gap[pick], pick))
+            continue
         if gap[pick] <= radius:
             break
         picks.append(pick)
         reach = float(gap[pick])  # only points within the largest gap can come closer
         reached = (np.asarray(tree.query_ball_point(points[pick], reach), dtype=np.int64) if np.isfinite(reach)
                    else np.arange(len(points)))
-        gap[reached] = np.minimum(gap[reached], np.linalg.norm(points[reached] - points[pick], axis=1))
+        offsets = points[reached] - points[pick]
+        gap[reached] = np.minimum(gap[reached], np.sqrt(np.einsum("ij,ij->i", offsets, offsets)))
         gap[pick] = 0.0
     return far[np.asarray(picks, dtype=np.int64)]
 
