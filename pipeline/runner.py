@@ -74,7 +74,8 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     scan = Scan(inputs)
     output = Path(output) if output is not None else default_output(scan.paths[0])
     check_output(output, [Path(p) for p in inputs], overwrite, OUTPUT_SUFFIXES)
-    check_run(scan, config.allow_geographic, Path(scratch or output.parent))
+    check_run(scan, config.allow_geographic, Path(scratch or output.parent), target_count(config.ratio, scan.point_count),
+              surveyed=config.method in FILL_LOSSES)
     unit = length_unit(scan.header)
     config = config.in_unit(unit.metres)
     if note is not None and (said := unit_note(unit, crs_label(scan.header))):
