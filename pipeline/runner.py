@@ -74,7 +74,8 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     scan = Scan(inputs)
     output = Path(output) if output is not None else default_output(scan.paths[0])
     check_output(output, [Path(p) for p in inputs], overwrite, OUTPUT_SUFFIXES)
-    check_run(scan, config.allow_geographic, Path(scratch or output.parent), target_count(config.ratio, scan.point_count),
+    check_run(scan, config.allow_geographic, Path(scratch or output.parent),
+              kept=int(target_count(config.ratio, scan.point_count) * (1 + RESERVE_SHARE)),
               surveyed=config.method in FILL_LOSSES)
     unit = length_unit(scan.header)
     config = config.in_unit(unit.metres)
@@ -116,8 +117,8 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, cl
     """Bucket, plan, simplify every tile on the cluster, stitch and write; return points written, tiles
     and tiles found finished by an earlier attempt."""
     clock.lap("start cluster")
-    store = TileStore.open(work.store_path) if (work.store_path / "zarr.json").is_file() else TileStore.create(
-        work.store_path, scan.dtype, {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
+    if not (work.store_path / "zarr.json").is_file():  # a resumed run keeps the pieces it stored
+        TileStore.create(work.store_path, scan.dtype, {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
     plan, slices = bucket_scan(client, scan, scan.pieces(config.chunk_points), work, config, show_progress)
     clock.lap("read and bucket")
     counts = np.array([t.count for t in plan.tiles], dtype=np.int64)
@@ -137,7 +138,7 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, cl
     map_tasks(client, simplify_tile, pending, plan, desc="simplify", show_progress=show_progress,
               weight=lambda outcome: outcome.points)
     clock.lap("simplify tiles")
-    parts = stitched_parts(store, plan, {job.tile_id: job for job in jobs}, budgets, config.seam_tolerance, scan)
+    parts = stitched_parts(plan, {job.tile_id: job for job in jobs}, budgets, config.seam_tolerance, scan)
     meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], config.ratio, config.method,
                       version("lidar-simplify"))
     written = write_output(output, scan.header, target, parts, meta)
@@ -256,12 +257,13 @@ def chunk_cache_bytes(config: RunConfig) -> int:
 
 
 def _load_result(job: TileJob) -> tuple[np.ndarray, np.ndarray]:
+    """A finished tile's kept records and xyz, in priority order."""
     with np.load(job.result_path) as result:
-        return result["rows"], result["xyz"]
+        return result["records"], result["xyz"]
 
 
-def stitched_parts(store: TileStore, plan: TilePlan, jobs: dict[int, TileJob], budgets: np.ndarray,
-                   tolerance: float, scan: Scan) -> Iterator[TilePart]:
+def stitched_parts(plan: TilePlan, jobs: dict[int, TileJob], budgets: np.ndarray, tolerance: float,
+                   scan: Scan) -> Iterator[TilePart]:
     """Each tile's final points in tile order, after the seam pass; one tile in memory at a time."""
     bands, candidate_counts = [], np.zeros(len(plan.tiles), dtype=np.int64)
     for tile_id, job in sorted(jobs.items()):
@@ -271,11 +273,10 @@ def stitched_parts(store: TileStore, plan: TilePlan, jobs: dict[int, TileJob], b
         bands.append(SeamBand(tile_id, near, xyz[near]))
     rejections = resolve_seams(bands, candidate_counts, budgets, tolerance)
     for tile_id, job in sorted(jobs.items()):
-        rows, xyz = _load_result(job)
+        records, xyz = _load_result(job)
         rejected = rejections.get(tile_id, np.empty(0, dtype=np.int64))
-        chosen = first_accepted(len(rows), int(budgets[tile_id]), rejected)
-        records = store.load(job.slices, job.cache_bytes).records[rows[chosen]]
-        records = _moved_to(records, xyz[chosen], scan)
+        chosen = first_accepted(len(records), int(budgets[tile_id]), rejected)
+        records = _moved_to(records[chosen], xyz[chosen], scan)
         yield TilePart(tile_id, _covering(plan.bounds(tile_id), scan.decode_xyz(records)), records)
 
 

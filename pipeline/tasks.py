@@ -69,33 +69,32 @@ def tile_seed(run_seed: int, tile_id: int) -> int:
 
 
 def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
-    """Pick budget+reserve core points of one tile in priority order; save their rows and xyz to result_path.
-
-    Rows are positions in what `TileStore.load(job.slices)` returns, so the stitch can fetch the records.
-    """
+    """Pick budget+reserve core points of one tile in priority order; save their records and xyz to
+    result_path, so the stitch reads only the kept points, not every tile's core and halo again."""
     started = time.perf_counter()
-    tile, seen = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap, job.seed)
+    tile, records = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap, job.seed)
     if job.survey_path is not None:
         loss = load_fill_loss(Path(job.survey_path))
         context = FillContext(loss, job.detail_scale, job.cover_radius, kept=job.budget)
         tile = Tile(tile.xyz, tile.core, tile.centre, tile.seed, context)
     selection = get_simplifier(job.method)(tile, min(job.budget + job.reserve, tile.core_count))
     write_atomically(Path(job.result_path),
-                     lambda tmp: save_npz(tmp, rows=seen[selection.indices], xyz=selection.xyz + tile.centre))
+                     lambda tmp: save_npz(tmp, records=records[selection.indices], xyz=selection.xyz + tile.centre))
     return TileOutcome(job.tile_id, len(tile.xyz), len(selection.indices), time.perf_counter() - started)
 
 
 def load_tile(store_path: str, slices: tuple[Slice, ...], cache_bytes: int, plan: TilePlan, tile_id: int,
               overlap: float, run_seed: int) -> tuple[Tile, np.ndarray]:
-    """A tile's core and halo points, centred on the core's mean, and their rows in what the slices load."""
+    """A tile's core and halo points, centred on the core's mean, and their raw records (same order)."""
     store = TileStore.open(Path(store_path))
     attrs = store.attrs
-    xyz = scaled_xyz(store.load(slices, cache_bytes).records, np.asarray(attrs["scales"]), np.asarray(attrs["offsets"]))
+    records = store.load(slices, cache_bytes).records
+    xyz = scaled_xyz(records, np.asarray(attrs["scales"]), np.asarray(attrs["offsets"]))
     core = plan.core_mask(tile_id, xyz)
     seen = np.flatnonzero(plan.halo_mask(core, tile_id, xyz, overlap))
     xyz, core = xyz[seen], core[seen]
     centre = xyz[core].mean(axis=0) if core.any() else np.zeros(3)
-    return Tile(xyz - centre, core, centre, tile_seed(run_seed, tile_id)), seen
+    return Tile(xyz - centre, core, centre, tile_seed(run_seed, tile_id)), records[seen]
 
 
 @dataclass(frozen=True)

@@ -35,7 +35,7 @@ VARIABLE_CHUNKS = 0xFFFFFFFF
 CHUNK_TABLE_HEADER_BYTES = 8  # version, number of chunks
 PROBE_POINTS = 1_000      # points of each file decoded before any worker starts
 SURVEY_BYTES = 6          # per scan point, a stratified method's survey: a float32 loss per core+halo point
-RESULT_BYTES = 34         # per kept point: its row (int64) and xyz (3 float64), with the 5 % seam reserve
+RESULT_XYZ_BYTES = 24     # per kept point, beside its record in the tile results: xyz as 3 float64
 SCRATCH_SLACK = 1.05      # piece records and the store's chunk files: the 100M-point runs used 4 % over the sum
 BOUNDS_SLACK_STEPS = 100  # points may stray this many grid steps (scale) outside the header's bounds ...
 BOUNDS_SLACK_SHARE = 0.01  # ... or this share of its extent, whichever is larger
@@ -194,8 +194,10 @@ def check_points(path: Path, xyz: np.ndarray, header: laspy.LasHeader) -> None:
 def check_run(scan: "Scan", allow_degrees: bool, scratch: Path, kept: int = 0, surveyed: bool = False) -> None:
     """Before any worker starts: every input in one CRS, none in degrees (unless allowed), the first points of every file decode,
     and the scratch folder has room for the work folder: the bucketed scan (every record, uncompressed,
-    with its index), the per-point survey of a stratified method and the `kept` points' tile results
-    (100M-point street, bench/scale.py: 47.4 bytes per point for fps, 53.5 for learned, record 34)."""
+    with its index), the per-point survey of a stratified method and the tile results (`kept` points,
+    seam reserve included: each one's record and xyz)
+    (100M-point street, bench/scale.py, when results held an 8-byte row: 47.4 bytes per point for fps,
+    53.5 for learned, record 34)."""
     first = scan.sources[0]
     for source in scan.sources[1:]:
         if not same_crs(first.header, source.header):
@@ -209,7 +211,7 @@ def check_run(scan: "Scan", allow_degrees: bool, scratch: Path, kept: int = 0, s
     if not scratch.is_dir():
         raise PipelineError(f"{scratch}: scratch folder does not exist")
     need = SCRATCH_SLACK * (scan.point_count * (scan.dtype.itemsize + TAIL + (SURVEY_BYTES if surveyed else 0))
-                            + kept * RESULT_BYTES)
+                            + kept * (scan.dtype.itemsize + RESULT_XYZ_BYTES))
     free = shutil.disk_usage(scratch).free
     if free < need:
         raise PipelineError(f"{scratch}: not enough space left for the scratch tiles ({free / 2**20:.1f} MiB free, "
