@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import time
 from contextlib import nullcontext
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from importlib.metadata import version
 from pathlib import Path
-from typing import Callable, Iterator, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 from dask.distributed import Client
@@ -23,7 +23,8 @@ from pipeline.scan import Piece, Scan
 from pipeline.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, simplify_tile, survey_tile
 from pipeline.validate import check_run
 from pipeline.workdir import WorkDir
-from pipeline.writers import OUTPUT_SUFFIXES, OutputMeta, TilePart, write_output
+from pipeline.output_meta import OutputMeta, TilePart
+from pipeline.writers import OUTPUT_SUFFIXES, write_output
 from tiling.budgets import coverage_weights, even_spacing, pooled_median, saliency_weights, target_count, tile_budgets, voxels_at
 from tiling.bucket import cell_boxes, row_ranges
 from tiling.plan import DensityGrid, TilePlan, plan_tiles, summed_cells
@@ -78,6 +79,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
               kept=int(target_count(config.ratio, scan.point_count) * (1 + RESERVE_SHARE)),
               surveyed=config.method in FILL_LOSSES)
     unit = length_unit(scan.header)
+    settings = asdict(config)  # what the output records: lengths in metres, as given
     config = config.in_unit(unit.metres)
     if note is not None and (said := unit_note(unit, crs_label(scan.header))):
         note(said)
@@ -88,7 +90,8 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     written = None
     try:
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler) as active:
-            written, tiles, resumed = simplify_scan(scan, output, config, work, active, clock, show_progress)
+            written, tiles, resumed = simplify_scan(scan, output, config, settings, work, active, clock,
+                                                       show_progress)
     except PipelineError as exc:
         if not work.has_results():
             work.remove()
@@ -112,8 +115,8 @@ def interrupted(exc: KeyboardInterrupt, work: WorkDir, written: Path | None) -> 
     return Interrupted("interrupted before any work finished; nothing was written", code)
 
 
-def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, client: Client, clock: "PhaseClock",
-                  show_progress: bool) -> tuple[int, int, int]:
+def simplify_scan(scan: Scan, output: Path, config: RunConfig, settings: dict[str, Any], work: WorkDir,
+                  client: Client, clock: "PhaseClock", show_progress: bool) -> tuple[int, int, int]:
     """Bucket, plan, simplify every tile on the cluster, stitch and write; return points written, tiles
     and tiles found finished by an earlier attempt."""
     clock.lap("start cluster")
@@ -140,7 +143,7 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, work: WorkDir, cl
     clock.lap("simplify tiles")
     parts = stitched_parts(plan, {job.tile_id: job for job in jobs}, budgets, config.seam_tolerance, scan)
     meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], config.ratio, config.method,
-                      version("lidar-simplify"))
+                      version("lidar-simplify"), settings)
     written = write_output(output, scan.header, target, parts, meta)
     clock.lap("stitch and write")
     return written, len(jobs), len(jobs) - len(pending)

@@ -1,0 +1,69 @@
+"""What an output says about how it was made: `lidar-simplify <version>` and the date in the LAS header,
+and a JSON record (method, ratio, model weights, settings, sources) in a VLR and in zarr attributes."""
+from __future__ import annotations
+
+import copy
+import datetime
+import hashlib
+import json
+from functools import lru_cache
+from importlib.metadata import version
+from pathlib import Path
+from typing import Any
+
+import laspy
+from laspy.vlrs.vlrlist import VLRList
+
+from pipeline.output_meta import OutputMeta
+
+SOFTWARE = "lidar-simplify"
+PROVENANCE_USER_ID = "lidar-simplify"  # 16 bytes at most in a VLR
+PROVENANCE_RECORD_ID = 1
+_WEIGHTS = {"learned": "detail.pt", "paper": "tosca.pt", "paper-refined": "tosca.pt"}
+
+
+def software_name() -> str:
+    """`lidar-simplify <version>`, what the header's generating-software field holds (32 bytes at most)."""
+    return f"{SOFTWARE} {version(SOFTWARE)}"[:32]
+
+
+@lru_cache(maxsize=None)
+def weights_digest(method: str) -> str | None:
+    """The first 16 hex digits of the SHA-256 of the trained weights `method` uses, or None for a method without."""
+    name = _WEIGHTS.get(method)
+    if name is None:
+        return None
+    path = Path(__file__).resolve().parent.parent / "model" / "weights" / name
+    return f"{name}:{hashlib.sha256(path.read_bytes()).hexdigest()[:16]}"
+
+
+def run_record(meta: OutputMeta) -> dict[str, Any]:
+    """The JSON-able provenance of one output: software, date, method, ratio, model weights, settings, sources."""
+    return {"software": SOFTWARE, "version": version(SOFTWARE), "created": datetime.date.today().isoformat(),
+            "method": meta.method, "ratio": meta.ratio, "model_weights": weights_digest(meta.method),
+            "settings": meta.settings, "sources": meta.sources}
+
+
+def provenance_vlr(meta: OutputMeta) -> laspy.VLR:
+    """A VLR whose record data is the run record as UTF-8 JSON."""
+    payload = json.dumps(run_record(meta), sort_keys=True).encode()
+    return laspy.VLR(PROVENANCE_USER_ID, PROVENANCE_RECORD_ID, "simplification settings (JSON)", payload)
+
+
+def read_provenance(header: laspy.LasHeader) -> dict[str, Any] | None:
+    """The run record a lidar-simplify output carries, or None for any other file."""
+    for vlr in header.vlrs:
+        if vlr.user_id == PROVENANCE_USER_ID and vlr.record_id == PROVENANCE_RECORD_ID:
+            return json.loads(bytes(vlr.record_data).rstrip(b"\0"))
+    return None
+
+
+def stamped_header(header: laspy.LasHeader, meta: OutputMeta) -> laspy.LasHeader:
+    """A copy of the input's header that names this software and today, and carries the run record
+    (replacing the record of an earlier simplification of the same points)."""
+    stamped = copy.deepcopy(header)
+    stamped.generating_software = software_name()
+    stamped.creation_date = datetime.date.today()
+    stamped.vlrs = VLRList([v for v in stamped.vlrs if v.user_id != PROVENANCE_USER_ID])
+    stamped.vlrs.append(provenance_vlr(meta))
+    return stamped
