@@ -207,9 +207,10 @@ def log_human_line(event: dict) -> None:
 @cli.command("info")
 @click.argument("input_file", metavar="INPUT", type=click.Path(path_type=Path))
 @click.option("--json", "as_json", is_flag=True, help="Print the summary as JSON.")
-def info_command(input_file: Path, as_json: bool) -> None:
-    """Summarise INPUT: points, LAS version, point format, bounds, scale/offset, CRS, dimensions."""
-    summary = summarize(input_file)
+@click.option("--header-only", is_flag=True, help="Skip counting classes and returns (reads only the header).")
+def info_command(input_file: Path, as_json: bool, header_only: bool) -> None:
+    """Summarise INPUT: points, format, bounds, CRS with EPSG and units, density, size, class and return counts."""
+    summary = summarize(input_file, count_points=not header_only)
     click.echo(json.dumps(summary, indent=2) if as_json else format_summary(summary))
 
 

@@ -78,11 +78,20 @@ class LengthUnit:
         """A length given in metres, in this unit."""
         return metres / self.metres
 
+    @property
+    def label(self) -> str:
+        """The unit's name for a report, marked where it was assumed: 'US survey foot', 'metre (assumed)'."""
+        return f"{self.name} (assumed)" if self.assumed else self.name
+
 
 def length_unit(header: laspy.LasHeader) -> LengthUnit:
-    """The header's horizontal length unit from its CRS (pyproj's axis unit and conversion factor: metre,
-    foot, US survey foot, ...); metres where the CRS gives none, and no conversion for degrees."""
-    crs = parsed_crs(header)
+    """The header's horizontal length unit (see `crs_length_unit`)."""
+    return crs_length_unit(parsed_crs(header))
+
+
+def crs_length_unit(crs: pyproj.CRS | None) -> LengthUnit:
+    """A CRS's horizontal length unit (pyproj's axis unit and conversion factor: metre, foot, US survey foot,
+    ...); metres where there is no CRS or it gives no unit, and no conversion for degrees."""
     if crs is None:
         return LengthUnit("metre", 1.0, assumed=True)
     if crs.is_geographic:

@@ -17,8 +17,9 @@ import numpy as np
 
 from model.geometry import PointFeatures, point_features
 from model.metrics import Quality, quality
+from pipeline.crs import LengthUnit
 from pipeline.errors import PipelineError
-from pipeline.points import Cells, covering_grid, load_xyz, point_count, xyz_chunks
+from pipeline.points import Cells, covering_grid, length_unit_of, load_xyz, point_count, xyz_chunks
 
 DEFAULT_SAMPLE = 200_000
 SAMPLE_CELLS = 256
@@ -40,6 +41,7 @@ class Reference:
     xyz: np.ndarray
     features: PointFeatures
     scored: np.ndarray | None
+    unit: LengthUnit  # of CD and Hausdorff: the reference's horizontal unit
 
     @property
     def evaluated_points(self) -> int:
@@ -77,7 +79,7 @@ def prepare_reference(path: Path, sample: int = DEFAULT_SAMPLE, seed: int = 0) -
     xyz, scored = load_sample(path, cells)
     centre = xyz.mean(axis=0)
     xyz = xyz - centre  # kd-trees and covariances on centred coordinates (DESIGN: traps)
-    return Reference(path, point_count(path), cells, centre, xyz, point_features(xyz), scored)
+    return Reference(path, point_count(path), cells, centre, xyz, point_features(xyz), scored, length_unit_of(path))
 
 
 def load_sample(path: Path, cells: Cells | None) -> tuple[np.ndarray, np.ndarray | None]:
@@ -90,7 +92,12 @@ def load_sample(path: Path, cells: Cells | None) -> tuple[np.ndarray, np.ndarray
 
 
 def score(reference: Reference, path: Path) -> Score:
-    """Metrics of one candidate file against the prepared reference, on the same cells."""
+    """Metrics of one candidate file against the prepared reference, on the same cells; a candidate whose
+    CRS is in another unit is refused (its distances would mix feet and metres)."""
+    unit = length_unit_of(path)
+    if not (unit.assumed or reference.unit.assumed) and unit.name != reference.unit.name:
+        raise PipelineError(f"{path}: its coordinates are in {unit.name} and {reference.path}'s in "
+                            f"{reference.unit.name}: reproject one first (e.g. pdal translate with filters.reprojection)")
     xyz, scored = load_sample(path, reference.cells)
     evaluated = len(xyz) if scored is None else int(scored.sum())
     if evaluated == 0:
@@ -124,7 +131,7 @@ def sample_note(reference: Reference) -> str:
     """One line saying what part of the reference the metrics cover."""
     share = "all points" if reference.cells is None else f"{len(reference.cells.chosen)} sampled grid cells"
     return (f"reference {reference.path}: {reference.points:,} points; evaluated on {reference.evaluated_points:,} "
-            f"({share}); lower is better for every metric")
+            f"({share}); CD and Hausdorff in {reference.unit.label}; lower is better for every metric")
 
 
 def format_scores(reference: Reference, scores: Sequence[Score]) -> str:
@@ -138,7 +145,8 @@ def reference_json(reference: Reference) -> dict[str, Any]:
     """What the JSON outputs say about the reference and the sample."""
     return {"reference": str(reference.path), "reference_points": reference.points,
             "evaluated_reference_points": reference.evaluated_points,
-            "sample_cells": None if reference.cells is None else len(reference.cells.chosen)}
+            "sample_cells": None if reference.cells is None else len(reference.cells.chosen),
+            "length_unit": reference.unit.name, "length_unit_assumed": reference.unit.assumed}
 
 
 def score_json(s: Score) -> dict[str, Any]:

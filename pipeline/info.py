@@ -1,48 +1,120 @@
-"""`pipeline info`: a header summary of a scan file, like `pdal info --summary`."""
+"""`pipeline info`: what `pdal info --summary` and `lasinfo` users look for in a scan file: its header,
+CRS (EPSG, horizontal and vertical units), point density, file size, and class and return counts
+counted from the points (a header's per-return counts may lie)."""
 from __future__ import annotations
 
 from pathlib import Path
 from typing import Any
 
-from pipeline.crs import crs_wkt
-from pipeline.scan import open_source
+import laspy
+import numpy as np
+
+from pipeline.crs import crs_label, crs_wkt, length_unit, parsed_crs
+from pipeline.provenance import read_provenance
+from pipeline.scan import Scan, open_source
+
+COUNT_CHUNK = 2_000_000  # points decoded at a time while counting classes and returns
 
 
-def summarize(path: str | Path) -> dict[str, Any]:
-    """Points, LAS version, point format, bounds, scale/offset, CRS and dimensions of one file."""
-    source = open_source(Path(path))
+def vertical_unit(header: laspy.LasHeader) -> str | None:
+    """The unit of z from a compound (or 3-D) CRS's vertical axis; None when the CRS gives no vertical axis."""
+    crs = parsed_crs(header)
+    if crs is None:
+        return None
+    axes = [axis for crs_part in (crs, *crs.sub_crs_list) for axis in crs_part.axis_info]
+    return next((axis.unit_name for axis in axes if axis.direction.lower() == "up"), None)
+
+
+def point_counts(path: Path) -> tuple[dict[int, int], dict[int, int]]:
+    """Points per classification code and per return number, counted in chunks over the whole file."""
+    scan = Scan([path])
+    classes = np.zeros(256, dtype=np.int64)
+    returns = np.zeros(16, dtype=np.int64)
+    for piece in scan.pieces(COUNT_CHUNK):
+        record = laspy.PackedPointRecord(scan.read(piece).records, scan.point_format)
+        classes += np.bincount(np.asarray(record["classification"], dtype=np.int64), minlength=256)[:256]
+        returns += np.bincount(np.asarray(record["return_number"], dtype=np.int64), minlength=16)[:16]
+    return ({int(c): int(classes[c]) for c in np.flatnonzero(classes)},
+            {int(r): int(returns[r]) for r in np.flatnonzero(returns)})
+
+
+def summarize(path: str | Path, count_points: bool = True) -> dict[str, Any]:
+    """Header, CRS, units, density and (unless `count_points` is False) class and return counts of one file."""
+    path = Path(path)
+    source = open_source(path)
     header = source.header
-    return {
+    crs = parsed_crs(header)
+    unit = length_unit(header)
+    lo, hi = np.asarray(header.mins, float), np.asarray(header.maxs, float)
+    area = float(np.prod(hi[:2] - lo[:2]))
+    summary: dict[str, Any] = {
         "file": str(path),
+        "file_size": path.stat().st_size,
         "points": source.point_count,
         "las_version": str(header.version),
         "point_format": header.point_format.id,
-        "compressed": Path(path).suffix.lower() == ".laz",
-        "bounds": {"min": [float(v) for v in header.mins], "max": [float(v) for v in header.maxs]},
+        "compressed": bool(header.are_points_compressed),
+        "copc": any(v.user_id == "copc" for v in header.vlrs),
+        "generating_software": header.generating_software,
+        "creation_date": header.creation_date.isoformat() if header.creation_date and header.creation_date.year > 1 else None,
+        "bounds": {"min": lo.tolist(), "max": hi.tolist()},
         "scale": [float(v) for v in header.scales],
         "offset": [float(v) for v in header.offsets],
+        "crs": crs_label(header),
+        "epsg": crs.to_epsg() if crs is not None else None,
         "crs_wkt": crs_wkt(header),
+        "horizontal_unit": unit.name,
+        "horizontal_unit_assumed": unit.assumed,
+        "metres_per_unit": unit.metres,
+        "vertical_unit": vertical_unit(header),
+        "area": area,
+        "density": source.point_count / area if area > 0 else None,
         "dimensions": list(header.point_format.dimension_names),
         "extra_dimensions": list(header.point_format.extra_dimension_names),
         "vlrs": [f"{v.user_id}/{v.record_id}" for v in header.vlrs],
+        "provenance": read_provenance(header),
     }
+    if count_points:
+        summary["class_counts"], summary["return_counts"] = point_counts(path)
+    return summary
 
 
 def format_summary(summary: dict[str, Any]) -> str:
     """Human-readable lines of a summary."""
-    crs = summary["crs_wkt"]
-    crs_line = (crs.split('"')[1] if crs and '"' in crs else crs) or "none"
     lo, hi = summary["bounds"]["min"], summary["bounds"]["max"]
+    unit = summary["horizontal_unit"] + (" (assumed)" if summary["horizontal_unit_assumed"] else "")
+    density = f"{summary['density']:,.2f} points per square {summary['horizontal_unit']} over the bounding box " \
+        f"({summary['area']:,.1f} square {summary['horizontal_unit']})" if summary["density"] else "n/a (flat bounds)"
+    kind = "COPC" if summary["copc"] else "LAZ" if summary["compressed"] else "uncompressed"
     lines = [
-        f"file:          {summary['file']}",
+        f"file:          {summary['file']} ({_size(summary['file_size'])})",
         f"points:        {summary['points']:,}",
-        f"LAS version:   {summary['las_version']}  point format {summary['point_format']}"
-        f"{'  (LAZ)' if summary['compressed'] else ''}",
+        f"LAS version:   {summary['las_version']}  point format {summary['point_format']}  ({kind})",
+        f"written by:    {summary['generating_software'] or 'unknown'} on {summary['creation_date'] or 'unknown date'}",
         f"bounds:        x {lo[0]:.3f} .. {hi[0]:.3f}   y {lo[1]:.3f} .. {hi[1]:.3f}   z {lo[2]:.3f} .. {hi[2]:.3f}",
         f"scale:         {' '.join(f'{v:g}' for v in summary['scale'])}",
         f"offset:        {' '.join(f'{v:g}' for v in summary['offset'])}",
-        f"CRS:           {crs_line}",
-        f"dimensions:    {', '.join(summary['dimensions'])}",
-        f"VLRs:          {', '.join(summary['vlrs']) or 'none'}",
+        f"CRS:           {summary['crs']}",
+        f"units:         horizontal {unit}, vertical {summary['vertical_unit'] or 'not given by the CRS'}",
+        f"density:       {density}",
     ]
+    if "class_counts" in summary:
+        lines.append("classes:       " + ", ".join(f"{c}: {n:,}" for c, n in summary["class_counts"].items()))
+        lines.append("returns:       " + ", ".join(f"{r}: {n:,}" for r, n in summary["return_counts"].items()))
+    lines += [f"dimensions:    {', '.join(summary['dimensions'])}",
+              f"VLRs:          {', '.join(summary['vlrs']) or 'none'}"]
+    if summary["provenance"]:
+        record = summary["provenance"]
+        lines.append(f"simplified:    by {record['software']} {record['version']} with {record['method']} "
+                     f"at ratio {record['ratio']:g}")
     return "\n".join(lines)
+
+
+def _size(count: int) -> str:
+    """Bytes as a short human figure: 12.3 MB."""
+    value, unit = float(count), "B"
+    for larger in ("kB", "MB", "GB", "TB"):
+        if value < 1000:
+            break
+        value, unit = value / 1000, larger
+    return f"{count} B" if unit == "B" else f"{value:.1f} {unit}"

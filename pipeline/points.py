@@ -7,8 +7,10 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+import pyproj
 import zarr
 
+from pipeline.crs import LengthUnit, crs_length_unit, length_unit
 from pipeline.errors import PipelineError
 from pipeline.scan import Scan
 
@@ -57,6 +59,18 @@ def point_count(path: Path) -> int:
     if _is_zarr(path):
         return int(_zarr_xyz(path)[0].shape[0])
     return Scan([path]).point_count
+
+
+def length_unit_of(path: Path) -> LengthUnit:
+    """The horizontal unit of a file's coordinates: its header's CRS, or a zarr output's `crs_wkt` attribute."""
+    if not _is_zarr(path):
+        return length_unit(Scan([path]).header)
+    _zarr_xyz(path)  # a clear error for a store that is not ours
+    wkt = zarr.open_group(str(path), mode="r").attrs.get("crs_wkt")
+    try:
+        return crs_length_unit(pyproj.CRS.from_wkt(wkt) if wkt else None)
+    except pyproj.exceptions.CRSError:
+        return crs_length_unit(None)
 
 
 def xyz_chunks(path: Path) -> Iterator[np.ndarray]:

@@ -52,6 +52,26 @@ def test_info_summary_and_json():
     summary = json.loads(cli("info", str(path), "--json").stdout)
     assert summary["points"] == 531_662 and summary["point_format"] == 1 and summary["las_version"] == "1.2"
     assert summary["scale"] == [0.01, 0.01, 0.01] and "gps_time" in summary["dimensions"]
+    assert summary["epsg"] == 3005 and summary["horizontal_unit"] == "metre" and summary["compressed"]
+    assert sum(summary["class_counts"].values()) == sum(summary["return_counts"].values()) == 531_662
+    assert summary["file_size"] == path.stat().st_size
+
+
+def test_info_counts_classes_and_returns_from_the_points_and_reads_compression_from_the_header(tmp_path):
+    """Counts come from the points, not the header's per-return counts; a LAZ file named .las is compressed."""
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = np.arange(10.0), np.arange(10.0), np.zeros(10)
+    las.classification = [2] * 7 + [6] * 3
+    las.return_number = [1] * 6 + [2] * 4
+    las.number_of_returns = [2] * 10
+    las.write(tmp_path / "disguised.laz")
+    (tmp_path / "disguised.laz").rename(tmp_path / "disguised.las")
+    summary = json.loads(cli("info", str(tmp_path / "disguised.las"), "--json").stdout)
+    assert summary["compressed"] and summary["class_counts"] == {"2": 7, "6": 3}
+    assert summary["return_counts"] == {"1": 6, "2": 4}
+    header_only = json.loads(cli("info", str(tmp_path / "disguised.las"), "--json", "--header-only").stdout)
+    assert "class_counts" not in header_only and header_only["points"] == 10
 
 
 @pytest.mark.parametrize("ratio", ["0", "1.5", "nan", "-0.1"])

@@ -1,6 +1,7 @@
 """Lengths are metres whatever the scan's unit: a scan in feet is tiled as the same scan in metres."""
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import laspy
@@ -63,3 +64,16 @@ def test_the_run_says_once_that_lengths_are_converted_or_assumed(tmp_path):
     assert feet.exit_code == 0 and bare.exit_code == 0
     assert feet.stderr.count("note: lengths are in metres and the scan is in foot") == 1
     assert bare.stderr.count("note: the scan has no usable CRS: its coordinates are taken as metres") == 1
+
+
+def test_info_and_eval_say_the_unit_and_eval_refuses_mixed_units(tmp_path):
+    write_patch(tmp_path / "ft.las", 2227, 1200 / 3937, n=5_000)
+    write_patch(tmp_path / "m.las", 32610, 1.0, n=5_000)
+    runner = CliRunner()
+    info = json.loads(runner.invoke(cli, ["info", str(tmp_path / "ft.las"), "--json"]).stdout)
+    assert info["epsg"] == 2227 and info["horizontal_unit"] == "US survey foot" and not info["horizontal_unit_assumed"]
+    assert info["density"] == pytest.approx(5_000 / info["area"])
+    scored = runner.invoke(cli, ["eval", str(tmp_path / "ft.las"), str(tmp_path / "ft.las")])
+    assert scored.exit_code == 0 and "CD and Hausdorff in US survey foot" in scored.stdout
+    mixed = runner.invoke(cli, ["eval", str(tmp_path / "ft.las"), str(tmp_path / "m.las")])
+    assert mixed.exit_code == 2 and "in metre" in mixed.stderr and "in US survey foot" in mixed.stderr
