@@ -27,7 +27,7 @@ from pipeline.config import RunConfig, build_config, checked_settings
 from pipeline.errors import PipelineError
 from pipeline.execute import cluster
 from pipeline.output_guard import is_same_file
-from pipeline.runner import default_output, run_scan
+from pipeline.runner import default_output, run_scan, written_paths
 from pipeline.workdir import run_key, write_atomically
 
 SCAN_SUFFIXES = (".las", ".laz", ".ply")
@@ -148,7 +148,8 @@ class Manifest:
     def is_done(self, job: BatchJob, key: str) -> bool:
         """Finished earlier with the same inputs and settings, and the output is still there."""
         entry = self.entries.get(str(job.output), {})
-        return entry.get("status") == "done" and entry.get("key") == key and job.output.exists()
+        return (entry.get("status") == "done" and entry.get("key") == key
+                and all(path.exists() for path in written_paths(job.output, job.config.levels)))
 
     def record(self, job: BatchJob, entry: dict[str, Any]) -> None:
         """Store one job's outcome and rewrite the file atomically."""

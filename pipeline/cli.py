@@ -10,7 +10,7 @@ from pathlib import Path
 import click
 
 import configs
-from pipeline.config import METHODS, build_config
+from pipeline.config import METHODS, build_config, parse_list
 from pipeline.errors import Interrupted, PipelineError, Terminated, file_system_error, signal_exit_code
 from pipeline.evaluate import DEFAULT_SAMPLE
 from pipeline.info import format_summary, summarize
@@ -70,9 +70,16 @@ def cli() -> None:
 
 @cli.command("run")
 @click.argument("inputs", nargs=-1, required=True, type=click.Path(path_type=Path))
-@click.option("--ratio", "-r", type=float, required=True, help="Fraction of points to keep, in (0, 1].")
+@click.option("--ratio", "-r", type=float, default=None, help="Fraction of points to keep, in (0, 1].")
+@click.option("--levels", default=None, metavar="0.2,0.1,0.05",
+              help="Write nested outputs NAME.r0.2.laz, NAME.r0.1.laz, ... (each a subset of the one before) from "
+                   "one simplification, for overview pyramids; replaces --ratio.")
+@click.option("--keep-class", default=None, metavar="6,14,15",
+              help="Keep every point of these LAS classes; the ratio applies to the rest.")
+@click.option("--thin-class", default=None, metavar="2",
+              help="Thin only the points of these LAS classes; keep every other point.")
 @click.option("--output", "-o", type=click.Path(path_type=Path), default=None,
-              help="Output file: .las, .laz or .zarr. [default: ./<input>.simplified.laz]")
+              help="Output file: .las, .laz, .copc.laz (COPC 1.0) or .zarr. [default: ./<input>.simplified.laz]")
 @click.option("--method", "-m", type=click.Choice(METHODS), default=None, help="Simplifier. [default: learned]")
 @click.option("--tile-size", type=float, default=None, help="Nominal tile edge in metres. [default: 50]")
 @click.option("--overlap", type=float, default=None, help="Halo width around each tile in metres. [default: 2]")
@@ -96,7 +103,8 @@ def cli() -> None:
 @click.option("--log-json", is_flag=True, help="Print the outcome as one JSON line on stdout (also on failure).")
 @click.option("--mesh", is_flag=True, help="INPUT is a triangle mesh (.off/.obj/.ply): simplify its vertices and "
               "re-triangulate them by ball pivoting; output .ply/.obj/.off.")
-def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, method: str | None,
+def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | None, keep_class: str | None,
+                thin_class: str | None, output: Path | None, method: str | None,
                 tile_size: float | None, overlap: float | None, max_tile_points: int | None,
                 seam_tolerance: float | None, workers: int | None, memory_limit: str | None, config: str | None,
                 seed: int | None, scratch: Path | None, scheduler: str | None, overwrite: bool,
@@ -105,9 +113,14 @@ def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, met
     from pipeline.runner import run_scan
 
     try:
+        if ratio is None and levels is None:
+            raise PipelineError("give --ratio (the fraction of points to keep) or --levels")
         settings = build_config(config, ratio=ratio, method=method, tile_size=tile_size, overlap=overlap,
                                 max_tile_points=max_tile_points, seam_tolerance=seam_tolerance, workers=workers,
-                                memory_limit=memory_limit, seed=seed, allow_geographic=allow_geographic or None)
+                                memory_limit=memory_limit, seed=seed, allow_geographic=allow_geographic or None,
+                                levels=parse_list(levels, "--levels", float),
+                                keep_classes=parse_list(keep_class, "--keep-class", int),
+                                thin_classes=parse_list(thin_class, "--thin-class", int))
         if mesh:
             from pipeline.mesh_mode import run_mesh
 
@@ -127,13 +140,12 @@ def run_command(inputs: tuple[Path, ...], ratio: float, output: Path | None, met
     if log_json:
         log_json_line({"event": "done", "input": [str(p) for p in inputs], "output": str(report.output),
                        "input_points": report.input_points, "output_points": report.output_points,
+                       "kept_whole": report.kept_whole,
+                       "levels": [{"output": str(path), "points": points} for path, points in report.levels],
                        "tiles": report.tiles, "resumed_tiles": report.resumed_tiles,
                        "seconds": round(report.seconds, 3), "phases": report.phases})
     elif not quiet:
-        rate = report.input_points / max(report.seconds, 1e-9)
-        resumed = f", {report.resumed_tiles} finished earlier" if report.resumed_tiles else ""
-        click.echo(f"{report.output}: {report.output_points:,} of {report.input_points:,} points "
-                   f"({report.tiles} tiles{resumed}, {report.seconds:.1f} s, {rate:,.0f} points/s)")
+        click.echo(report.summary(settings))
     if verbose:
         click.echo("  ".join(f"{phase}: {seconds:.2f} s" for phase, seconds in report.phases.items()))
 

@@ -34,6 +34,9 @@ class RunConfig:
     chunk_points: int = 500_000  # points per bucketing piece: one piece per worker in memory at a time
     seed: int = 0
     allow_geographic: bool = False  # run on coordinates in degrees (tile sizes and distances become degrees)
+    levels: tuple[float, ...] = ()  # nested outputs at these ratios from one simplification (the first is `ratio`)
+    keep_classes: tuple[int, ...] = ()  # classification codes kept whole; the ratio applies to the rest
+    thin_classes: tuple[int, ...] = ()  # the only codes thinned; every other point is kept whole
 
     def in_unit(self, metres_per_unit: float) -> "RunConfig":
         """The same settings with the lengths (tile size, overlap, seam tolerance: metres) in a scan unit."""
@@ -57,10 +60,47 @@ class RunConfig:
             raise PipelineError(f"--memory-limit {self.memory_limit} is below the {MIN_MEMORY_LIMIT // 2**20} MiB a "
                                 "worker needs (one takes about 100 MB at rest, its tile the rest): give it 256MiB "
                                 "or more, 2GB for the default method")
+        check_levels(self.levels, self.ratio)
+        check_classes(self.keep_classes, self.thin_classes)
         if parse_size(self.cache_memory, "cache-memory") >= parse_size(self.memory_limit, "--memory-limit"):
             raise PipelineError(f"cache-memory must be below --memory-limit, got {self.cache_memory!r} "
                                 f"with {self.memory_limit!r}")
         return self
+
+
+def check_levels(levels: tuple[float, ...], ratio: float) -> None:
+    """Levels are ratios in (0, 1], strictly decreasing, the first being the run's ratio."""
+    if not levels:
+        return
+    if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and 0 < v <= 1
+               for v in levels):
+        raise PipelineError(f"--levels must be ratios in (0, 1], got {','.join(map(str, levels))}")
+    if any(later >= earlier for earlier, later in zip(levels, levels[1:])):
+        raise PipelineError(f"--levels must decrease (each level a subset of the one before), got "
+                            f"{','.join(map(str, levels))}")
+    if levels[0] != ratio:
+        raise PipelineError(f"--ratio {ratio} disagrees with --levels {','.join(map(str, levels))}, whose first "
+                            "level is the ratio: give one of them")
+
+
+def check_classes(keep: tuple[int, ...], thin: tuple[int, ...]) -> None:
+    """Class codes are whole numbers 0-255, and a run either keeps some classes whole or thins only some."""
+    for option, codes in (("--keep-class", keep), ("--thin-class", thin)):
+        if not all(isinstance(c, int) and not isinstance(c, bool) and 0 <= c <= 255 for c in codes):
+            raise PipelineError(f"{option} takes LAS classification codes 0-255, got {','.join(map(str, codes))}")
+    if keep and thin:
+        raise PipelineError("give --keep-class or --thin-class, not both (one names what the other leaves)")
+
+
+def parse_list(text: str | None, option: str, kind: type) -> tuple | None:
+    """'6,14,15' as a tuple of `kind` (None stays None: the option was not given); one line if malformed."""
+    if text is None:
+        return None
+    try:
+        return tuple(kind(part) for part in text.split(",") if part.strip())
+    except ValueError:
+        raise PipelineError(f"{option} takes comma-separated {'whole numbers' if kind is int else 'numbers'}, "
+                            f"got {text!r}") from None
 
 
 def parse_size(text: str, option: str = "--memory-limit") -> int:
@@ -89,7 +129,8 @@ def load_settings(config: str | None) -> dict[str, Any]:
 
 SETTING_TYPES = {f.name: f.type for f in fields(RunConfig)}  # "float", "int", "str", "bool" (postponed annotations)
 SIZE_SETTINGS = ("memory_limit", "cache_memory")  # "2GB" or a number of bytes
-TYPE_WORDS = {"float": "a number", "int": "a whole number", "str": "a string", "bool": "true or false"}
+TYPE_WORDS = {"float": "a number", "int": "a whole number", "str": "a string", "bool": "true or false",
+              "tuple[float, ...]": "a list of numbers", "tuple[int, ...]": "a list of whole numbers"}
 
 
 def checked_settings(settings: dict[str, Any], where: str) -> dict[str, Any]:
@@ -104,7 +145,11 @@ def checked_settings(settings: dict[str, Any], where: str) -> dict[str, Any]:
               "int": isinstance(value, int) and not isinstance(value, bool),
               "str": isinstance(value, str) or (key in SIZE_SETTINGS and isinstance(value, int)
                                                 and not isinstance(value, bool)),
-              "bool": isinstance(value, bool)}[kind]
+              "bool": isinstance(value, bool),
+              "tuple[float, ...]": isinstance(value, list) and all(isinstance(v, (int, float))
+                                                                   and not isinstance(v, bool) for v in value),
+              "tuple[int, ...]": isinstance(value, list) and all(isinstance(v, int)
+                                                                 and not isinstance(v, bool) for v in value)}[kind]
         if not ok:
             raise PipelineError(f"{where}: {key} must be {TYPE_WORDS[kind]}, got {value!r}")
     return settings
@@ -115,6 +160,9 @@ def build_config(config: str | None = None, **overrides: Any) -> RunConfig:
     base = RunConfig()
     settings = load_settings(config)
     settings.update({k: v for k, v in overrides.items() if v is not None})
+    settings = {k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()}
+    if settings.get("levels") and "ratio" not in settings:  # the first level is the ratio the run simplifies to
+        settings["ratio"] = settings["levels"][0]
     try:
         return replace(base, **settings).validated()
     except TypeError as exc:

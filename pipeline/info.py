@@ -9,6 +9,7 @@ from typing import Any
 import laspy
 import numpy as np
 
+from pipeline.classes import class_histogram
 from pipeline.crs import crs_label, crs_wkt, length_unit, parsed_crs
 from pipeline.provenance import read_provenance
 from pipeline.scan import Scan, open_source
@@ -31,9 +32,9 @@ def point_counts(path: Path) -> tuple[dict[int, int], dict[int, int]]:
     classes = np.zeros(256, dtype=np.int64)
     returns = np.zeros(16, dtype=np.int64)
     for piece in scan.pieces(COUNT_CHUNK):
-        record = laspy.PackedPointRecord(scan.read(piece).records, scan.point_format)
-        classes += np.bincount(np.asarray(record["classification"], dtype=np.int64), minlength=256)[:256]
-        returns += np.bincount(np.asarray(record["return_number"], dtype=np.int64), minlength=16)[:16]
+        records = scan.read(piece).records
+        classes += class_histogram(records)
+        returns += np.bincount(laspy.PackedPointRecord(records, scan.point_format)["return_number"], minlength=16)
     return ({int(c): int(classes[c]) for c in np.flatnonzero(classes)},
             {int(r): int(returns[r]) for r in np.flatnonzero(returns)})
 

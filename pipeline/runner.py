@@ -3,10 +3,10 @@ from __future__ import annotations
 
 import time
 from contextlib import nullcontext
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 from dask.distributed import Client
@@ -16,19 +16,21 @@ from model.stratified import COVER_SPACINGS
 from pipeline.config import RunConfig, parse_size
 from pipeline.crs import crs_label, crs_wkt, length_unit, unit_note
 from pipeline.errors import Interrupted, PipelineError, signal_exit_code
+from pipeline.assemble import level_parts, seam_rejections
 from pipeline.atomic import remove_stale_temporaries
+from pipeline.classes import ClassRule
 from pipeline.execute import cluster, map_tasks
 from pipeline.output_guard import check_output
 from pipeline.scan import Piece, Scan
 from pipeline.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, simplify_tile, survey_tile
 from pipeline.validate import check_run
-from pipeline.workdir import WorkDir
-from pipeline.output_meta import OutputMeta, TilePart
+from pipeline.workdir import WorkDir, output_settings
+from pipeline.output_meta import OutputMeta
 from pipeline.writers import OUTPUT_SUFFIXES, write_output
-from tiling.budgets import coverage_weights, even_spacing, pooled_median, saliency_weights, target_count, tile_budgets, voxels_at
+from tiling.budgets import (coverage_weights, even_spacing, nested_budgets, pooled_median, saliency_weights,
+                            target_count, tile_budgets, voxels_at)
 from tiling.bucket import cell_boxes, row_ranges
 from tiling.plan import DensityGrid, TilePlan, plan_tiles, summed_cells
-from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
 from tiling.store import Slice, TileStore
 
 RESERVE_SHARE = 0.05               # extra picks per tile, in priority order, for the seam top-up
@@ -46,6 +48,21 @@ class RunReport:
     resumed_tiles: int
     seconds: float
     phases: dict[str, float]
+    levels: tuple[tuple[Path, int], ...] = ()  # every output written and its points, finest first
+    kept_whole: int = 0  # points a class rule kept whole (counted in output_points)
+
+    def summary(self, config: RunConfig) -> str:
+        """What `pipeline run` prints: a line per output written, and what a class rule kept whole."""
+        rate = self.input_points / max(self.seconds, 1e-9)
+        resumed = f", {self.resumed_tiles} finished earlier" if self.resumed_tiles else ""
+        lines = [f"{path}: {points:,} of {self.input_points:,} points" for path, points in self.levels]
+        lines[0] += f" ({self.tiles} tiles{resumed}, {self.seconds:.1f} s, {rate:,.0f} points/s)"
+        rule = ClassRule.of(config)
+        if rule.active:
+            thinned = self.input_points - self.kept_whole
+            lines.append(f"{rule.describe()}: {self.kept_whole:,} points kept whole; the other {thinned:,} thinned to "
+                         + ", ".join(f"{points - self.kept_whole:,}" for _, points in self.levels))
+        return "\n".join(lines)
 
 
 def default_output(first_input: Path) -> Path:
@@ -74,24 +91,27 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     config = config.validated()
     scan = Scan(inputs)
     output = Path(output) if output is not None else default_output(scan.paths[0])
-    check_output(output, [Path(p) for p in inputs], overwrite, OUTPUT_SUFFIXES)
+    outputs = written_paths(output, config.levels)
+    for path in outputs:
+        check_output(path, [Path(p) for p in inputs], overwrite, OUTPUT_SUFFIXES)
     check_run(scan, config.allow_geographic, Path(scratch or output.parent),
               kept=int(target_count(config.ratio, scan.point_count) * (1 + RESERVE_SHARE)),
               surveyed=config.method in FILL_LOSSES)
     unit = length_unit(scan.header)
-    settings = asdict(config)  # what the output records: lengths in metres, as given
+    settings = output_settings(config)  # what the output records: lengths in metres, as given
     config = config.in_unit(unit.metres)
     if note is not None and (said := unit_note(unit, crs_label(scan.header))):
         note(said)
     if target_count(config.ratio, scan.point_count) == 0:
         raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {scan.point_count} points")
-    remove_stale_temporaries(output)
+    for path in outputs:
+        remove_stale_temporaries(path)
     work = WorkDir.for_run(output, Path(scratch) if scratch else None, scan.paths, config)
     written = None
     try:
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler) as active:
-            written, tiles, resumed = simplify_scan(scan, output, config, settings, work, active, clock,
-                                                       show_progress)
+            written, tiles, resumed, kept_whole = simplify_scan(scan, outputs, config, settings, work, active, clock,
+                                                                show_progress, note or (lambda line: None))
     except PipelineError as exc:
         if not work.has_results():
             work.remove()
@@ -100,7 +120,22 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM through the CLI's handler; the cluster is closed by now
         raise interrupted(exc, work, output if written is not None else None) from None
     work.remove()
-    return RunReport(output, scan.point_count, written, tiles, resumed, clock.total, clock.laps)
+    return RunReport(outputs[0], scan.point_count, written[0], tiles, resumed, clock.total, clock.laps,
+                     tuple(zip(outputs, written)), kept_whole)
+
+
+def written_paths(output: Path, levels: Sequence[float]) -> list[Path]:
+    """The files a run writes: `output`, or one per level with `--levels` (finest first)."""
+    return [level_output(output, level) for level in levels] or [output]
+
+
+def level_output(output: Path, ratio: float) -> Path:
+    """Where `--levels` writes one level: `name.r0.1.laz` beside `name.laz` (`name.r0.1.copc.laz`, ...)."""
+    name = output.name
+    for suffix in (".copc.laz", *OUTPUT_SUFFIXES):
+        if name.lower().endswith(suffix):
+            return output.with_name(f"{name[:-len(suffix)]}.r{ratio:g}{name[-len(suffix):]}")
+    return output.with_name(f"{name}.r{ratio:g}")
 
 
 def interrupted(exc: KeyboardInterrupt, work: WorkDir, written: Path | None) -> Interrupted:
@@ -115,16 +150,22 @@ def interrupted(exc: KeyboardInterrupt, work: WorkDir, written: Path | None) -> 
     return Interrupted("interrupted before any work finished; nothing was written", code)
 
 
-def simplify_scan(scan: Scan, output: Path, config: RunConfig, settings: dict[str, Any], work: WorkDir,
-                  client: Client, clock: "PhaseClock", show_progress: bool) -> tuple[int, int, int]:
-    """Bucket, plan, simplify every tile on the cluster, stitch and write; return points written, tiles
-    and tiles found finished by an earlier attempt."""
+def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: dict[str, Any], work: WorkDir,
+                  client: Client, clock: "PhaseClock", show_progress: bool,
+                  note: Callable[[str], None]) -> tuple[list[int], int, int, int]:
+    """Bucket, plan, simplify every tile on the cluster, stitch and write each level; return points written
+    per output, tiles, tiles found finished by an earlier attempt, and points kept whole."""
     clock.lap("start cluster")
     if not (work.store_path / "zarr.json").is_file():  # a resumed run keeps the pieces it stored
         TileStore.create(work.store_path, scan.dtype, {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
-    plan, slices = bucket_scan(client, scan, scan.pieces(config.chunk_points), work, config, show_progress)
+    rule = ClassRule.of(config)
+    plan, slices, whole, classes = bucket_scan(client, scan, scan.pieces(config.chunk_points), work, config, rule,
+                                               show_progress)
+    for code in (*rule.keep, *rule.thin):
+        if classes[code] == 0:
+            note(f"class {code} has no points in the scan")
     clock.lap("read and bucket")
-    counts = np.array([t.count for t in plan.tiles], dtype=np.int64)
+    counts = np.array([t.count for t in plan.tiles], dtype=np.int64) - whole  # the points to thin
     target = target_count(config.ratio, int(counts.sum()))
     weights, floors, fill = None, np.minimum(counts, 1), None  # no tile left empty
     if config.method in EVEN_SPACING or config.method in FILL_LOSSES:
@@ -136,17 +177,22 @@ def simplify_scan(scan: Scan, output: Path, config: RunConfig, settings: dict[st
             weights, fill = scan_fill(surveys, occupied, sizes, target)  # keeps enough to cover its holes
             floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)
     budgets = tile_budgets(counts, config.ratio, floors=floors, weights=weights)
-    jobs = make_jobs(work, plan, slices, budgets, config, fill)
+    jobs = make_jobs(work, plan, slices, budgets, whole, config, fill)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]
     map_tasks(client, simplify_tile, pending, plan, desc="simplify", show_progress=show_progress,
               weight=lambda outcome: outcome.points)
     clock.lap("simplify tiles")
-    parts = stitched_parts(plan, {job.tile_id: job for job in jobs}, budgets, config.seam_tolerance, scan)
-    meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], config.ratio, config.method,
-                      version("lidar-simplify"), settings)
-    written = write_output(output, scan.header, target, parts, meta)
+    results = {job.tile_id: job.result_path for job in jobs}
+    rejections = seam_rejections(plan, results, budgets, config.seam_tolerance)
+    written = []
+    for path, ratio in zip(outputs, config.levels or (config.ratio,)):
+        level = nested_budgets(budgets, target_count(ratio, int(counts.sum())))
+        meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], ratio, config.method,
+                          version("lidar-simplify"), settings)
+        parts = level_parts(plan, results, budgets, level, rejections, scan)
+        written.append(write_output(path, scan.header, int(level.sum() + whole.sum()), parts, meta))
     clock.lap("stitch and write")
-    return written, len(jobs), len(jobs) - len(pending)
+    return written, len(jobs), len(jobs) - len(pending), int(whole.sum())
 
 
 class PhaseClock:
@@ -168,10 +214,11 @@ class PhaseClock:
         self._last = now
 
 
-def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], work: WorkDir, config: RunConfig,
-                show_progress: bool) -> tuple[TilePlan, list[list[Slice]]]:
+def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], work: WorkDir, config: RunConfig, rule: ClassRule,
+                show_progress: bool) -> tuple[TilePlan, list[list[Slice]], np.ndarray, np.ndarray]:
     """The one streamed pass: pieces stored sorted by grid cell (those an earlier attempt finished are
-    reused); then the plan from the summed density, and each tile's core+halo as row slices of the pieces."""
+    reused); then the plan from the summed density, each tile's core+halo as row slices of the pieces,
+    the (tiles,) core points `rule` keeps whole and the scan's (256,) points per class."""
     mins, maxs = scan.bounds
     try:
         grid = DensityGrid.covering(mins, maxs, config.tile_size)
@@ -179,21 +226,23 @@ def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], work: WorkDir, 
         raise PipelineError(f"{scan.paths[0]}: {exc}: pass a larger --tile-size") from None
     finished = {piece.number: work.finished_piece(piece.number) for piece in pieces}
     pending = [piece for piece in pieces if finished[piece.number] is None]
-    fresh = map_tasks(client, bucket_piece, pending, scan, grid, str(work.path), desc="read and bucket",
-                      show_progress=show_progress, weight=lambda result: int(result[1][-1]))
+    fresh = map_tasks(client, bucket_piece, pending, scan, grid, str(work.path), rule, desc="read and bucket",
+                      show_progress=show_progress, weight=lambda result: int(result.starts[-1]))
     finished.update({piece.number: result for piece, result in zip(pending, fresh)})
     buckets = [finished[piece.number] for piece in pieces]
-    cells, counts = summed_cells([cells for cells, _ in buckets], [np.diff(starts) for _, starts in buckets])
+    cells, counts = summed_cells([b.cells for b in buckets], [np.diff(b.starts) for b in buckets])
     plan = plan_tiles(grid, cells, counts, config.max_tile_points)
-    boxes = cell_boxes([cells for cells, _ in buckets], grid.shape[1])
+    _, protected = summed_cells([b.cells for b in buckets], [b.protected for b in buckets])
+    whole = np.bincount(plan.cell_tiles, weights=protected, minlength=len(plan.tiles)).astype(np.int64)  # plan.cells == cells
+    boxes = cell_boxes([b.cells for b in buckets], grid.shape[1])
     slices: list[list[Slice]] = []
     for tile_id in range(len(plan.tiles)):  # only the pieces a halo meets (not every piece for every tile)
         i0, i1, j0, j1 = plan.halo_cell_rect(tile_id, config.overlap)
         meets = np.flatnonzero((boxes[:, 0] < i1) & (boxes[:, 1] > i0) & (boxes[:, 2] < j1) & (boxes[:, 3] > j0))
         cell_ranges = plan.halo_cell_ranges(tile_id, config.overlap)
         slices.append([Slice(pieces[k].number, int(lo), int(hi)) for k in meets
-                       for lo, hi in row_ranges(*buckets[k], cell_ranges)])
-    return plan, slices
+                       for lo, hi in row_ranges(buckets[k].cells, buckets[k].starts, cell_ranges)])
+    return plan, slices, whole, np.sum([b.classes for b in buckets], axis=0)
 
 
 COVERAGE_LEVELS = 2.0 ** np.arange(-4, 5)  # voxel sizes, relative to the 2-D spacing estimate
@@ -215,7 +264,8 @@ def survey_scan(client: Client, plan: TilePlan, slices: list[list[Slice]], work:
     spacing = float(np.sqrt(sum(t.occupied for t in plan.tiles) * cell_area / max(target, 1)))
     sizes = tuple(float(s) for s in spacing * COVERAGE_LEVELS)
     jobs = [SurveyJob(str(work.store_path), str(work.survey_path(tile_id)), tile_id, tuple(slices[tile_id]),
-                      config.overlap, chunk_cache_bytes(config), sizes, config.method, config.ratio, config.seed)
+                      config.overlap, chunk_cache_bytes(config), sizes, config.method, config.ratio, config.seed,
+                      ClassRule.of(config))
             for tile_id in range(len(plan.tiles))]
     pending = [job for job in jobs if not Path(job.survey_path).is_file()]
     fresh = dict(zip((job.tile_id for job in pending),
@@ -236,67 +286,25 @@ def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray
     return weights, ScanFill(scales, max(COVER_SPACINGS * spacing, even_spacing(occupied, sizes, target)))
 
 
-def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray,
+def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray, whole: np.ndarray,
               config: RunConfig, fill: ScanFill | None = None) -> list[TileJob]:
-    """One job per tile with a non-zero budget, in tile order: neighbours share pieces, so caches stay warm."""
+    """One job per tile that keeps a point (a budget, or points kept whole), in tile order: neighbours
+    share pieces, so caches stay warm."""
     jobs = []
     for tile_id, tile in enumerate(plan.tiles):
         budget = int(budgets[tile_id])
-        if budget == 0:
+        if budget == 0 and whole[tile_id] == 0:
             continue
-        reserve = min(tile.count - budget, max(RESERVE_MIN, int(np.ceil(RESERVE_SHARE * budget))))
+        reserve = min(tile.count - int(whole[tile_id]) - budget, max(RESERVE_MIN, int(np.ceil(RESERVE_SHARE * budget))))
         surveyed = {} if fill is None else dict(survey_path=str(work.survey_path(tile_id)),
                                                  detail_scale=float(fill.detail_scales[tile_id]),
                                                  cover_radius=fill.cover_radius)
         jobs.append(TileJob(str(work.store_path), str(work.tile_path(tile_id)), tile_id, tuple(slices[tile_id]),
                             config.overlap, chunk_cache_bytes(config), budget, reserve, config.method, config.seed,
-                            **surveyed))
+                            **surveyed, rule=ClassRule.of(config)))
     return jobs
 
 
 def chunk_cache_bytes(config: RunConfig) -> int:
     """Memory each process may spend caching stored row chunks (`cache_memory`, part of its memory limit)."""
     return parse_size(config.cache_memory, "cache-memory")
-
-
-def _load_result(job: TileJob) -> tuple[np.ndarray, np.ndarray]:
-    """A finished tile's kept records and xyz, in priority order."""
-    with np.load(job.result_path) as result:
-        return result["records"], result["xyz"]
-
-
-def stitched_parts(plan: TilePlan, jobs: dict[int, TileJob], budgets: np.ndarray, tolerance: float,
-                   scan: Scan) -> Iterator[TilePart]:
-    """Each tile's final points in tile order, after the seam pass; one tile in memory at a time."""
-    bands, candidate_counts = [], np.zeros(len(plan.tiles), dtype=np.int64)
-    for tile_id, job in sorted(jobs.items()):
-        _, xyz = _load_result(job)
-        candidate_counts[tile_id] = len(xyz)
-        near = np.flatnonzero(band_mask(xyz, plan.bounds(tile_id), tolerance))
-        bands.append(SeamBand(tile_id, near, xyz[near]))
-    rejections = resolve_seams(bands, candidate_counts, budgets, tolerance)
-    for tile_id, job in sorted(jobs.items()):
-        records, xyz = _load_result(job)
-        rejected = rejections.get(tile_id, np.empty(0, dtype=np.int64))
-        chosen = first_accepted(len(records), int(budgets[tile_id]), rejected)
-        records = _moved_to(records[chosen], xyz[chosen], scan)
-        yield TilePart(tile_id, _covering(plan.bounds(tile_id), scan.decode_xyz(records)), records)
-
-
-def _covering(rect: tuple[float, float, float, float], xyz: np.ndarray) -> tuple[float, float, float, float]:
-    """The tile's core rectangle grown to hold its kept points: a refined point may move slightly outside."""
-    if len(xyz) == 0:
-        return rect
-    low, high = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
-    return (min(rect[0], float(low[0])), min(rect[1], float(low[1])),
-            max(rect[2], float(high[0])), max(rect[3], float(high[1])))
-
-
-def _moved_to(records: np.ndarray, xyz: np.ndarray, scan: Scan) -> np.ndarray:
-    """Records whose X/Y/Z follow xyz where a method refined the position (attributes stay the source's)."""
-    moved = np.any(xyz != scan.decode_xyz(records), axis=1)
-    if moved.any():
-        ints = np.rint((xyz[moved] - scan.offsets) / scan.scales).astype(np.int32)
-        for axis, name in enumerate("XYZ"):
-            records[name][moved] = ints[:, axis]
-    return records

@@ -13,10 +13,11 @@ import numpy as np
 
 from model import Tile, get_simplifier
 from model.registry import FILL_LOSSES
-from model.selection import FillContext, FillLoss
+from model.selection import FillContext, FillLoss, Selection
 from model.stratified import pick_spacings
 from pipeline.scan import Piece, Scan, scaled_xyz
-from pipeline.workdir import WorkDir, save_npz, write_atomically
+from pipeline.classes import ClassRule, class_histogram
+from pipeline.workdir import BucketedPiece, WorkDir, save_npz, write_atomically
 from tiling.bucket import bucket_by_cell
 from tiling.budgets import occupied_voxels, target_count
 from tiling.plan import DensityGrid, TilePlan
@@ -40,6 +41,7 @@ class TileJob:
     survey_path: str | None = None  # a stratified method's survey of this tile (its fill loss)
     detail_scale: float = 0.0       # the tile's loss level over the scan's (model.selection.FillContext)
     cover_radius: float = 0.0       # the scan-wide hole radius, scan units
+    rule: ClassRule = ClassRule()   # core points it keeps whole are saved apart and never thinned
 
 
 @dataclass(frozen=True)
@@ -52,15 +54,18 @@ class TileOutcome:
     seconds: float
 
 
-def bucket_piece(piece: Piece, scan: Scan, grid: DensityGrid, work_path: str) -> tuple[np.ndarray, np.ndarray]:
+def bucket_piece(piece: Piece, scan: Scan, grid: DensityGrid, work_path: str, rule: ClassRule) -> BucketedPiece:
     """Read one piece once, store its rows sorted by grid cell, record it as done in the work folder;
-    return its occupied cells and row starts."""
+    return its occupied cells, row starts, points kept whole per cell and points per class."""
     chunk = scan.read(piece)
     buckets = bucket_by_cell(chunk.records, chunk.xyz, piece.first, grid)
+    protected_cells = grid.cell_of(chunk.xyz[rule.protected(chunk.records)])
+    per_cell = np.bincount(np.searchsorted(buckets.cells, protected_cells), minlength=len(buckets.cells))
+    bucketed = BucketedPiece(buckets.cells, buckets.starts, per_cell.astype(np.int64), class_histogram(chunk.records))
     work = WorkDir(Path(work_path))
     TileStore.open(work.store_path).write_piece(piece.number, buckets.rows)
-    work.save_piece(piece.number, buckets.cells, buckets.starts)
-    return buckets.cells, buckets.starts
+    work.save_piece(piece.number, bucketed)
+    return bucketed
 
 
 def tile_seed(run_seed: int, tile_id: int) -> int:
@@ -70,31 +75,38 @@ def tile_seed(run_seed: int, tile_id: int) -> int:
 
 def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     """Pick budget+reserve core points of one tile in priority order; save their records and xyz to
-    result_path, so the stitch reads only the kept points, not every tile's core and halo again."""
+    result_path, so the stitch reads only the kept points, not every tile's core and halo again; core
+    points the class rule keeps whole are saved apart (`whole`) and were never candidates."""
     started = time.perf_counter()
-    tile, records = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap, job.seed)
+    tile, records, whole = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap,
+                                     job.seed, job.rule)
     if job.survey_path is not None:
         loss = load_fill_loss(Path(job.survey_path))
         context = FillContext(loss, job.detail_scale, job.cover_radius, kept=job.budget)
         tile = Tile(tile.xyz, tile.core, tile.centre, tile.seed, context)
-    selection = get_simplifier(job.method)(tile, min(job.budget + job.reserve, tile.core_count))
+    count = min(job.budget + job.reserve, tile.core_count)
+    picked = get_simplifier(job.method)(tile, count) if count else Selection.of(tile, np.empty(0, np.int64))
     write_atomically(Path(job.result_path),
-                     lambda tmp: save_npz(tmp, records=records[selection.indices], xyz=selection.xyz + tile.centre))
-    return TileOutcome(job.tile_id, len(tile.xyz), len(selection.indices), time.perf_counter() - started)
+                     lambda tmp: save_npz(tmp, records=records[picked.indices], xyz=picked.xyz + tile.centre,
+                                          whole=records[whole], whole_xyz=tile.xyz[whole] + tile.centre))
+    return TileOutcome(job.tile_id, len(tile.xyz), len(picked.indices) + len(whole), time.perf_counter() - started)
 
 
 def load_tile(store_path: str, slices: tuple[Slice, ...], cache_bytes: int, plan: TilePlan, tile_id: int,
-              overlap: float, run_seed: int) -> tuple[Tile, np.ndarray]:
-    """A tile's core and halo points, centred on the core's mean, and their raw records (same order)."""
+              overlap: float, run_seed: int, rule: ClassRule) -> tuple[Tile, np.ndarray, np.ndarray]:
+    """A tile's core and halo points, centred on the core's mean, their raw records (same order), and the
+    indices of the core points `rule` keeps whole: they stay in the tile as context, outside its core."""
     store = TileStore.open(Path(store_path))
     attrs = store.attrs
     records = store.load(slices, cache_bytes).records
     xyz = scaled_xyz(records, np.asarray(attrs["scales"]), np.asarray(attrs["offsets"]))
     core = plan.core_mask(tile_id, xyz)
     seen = np.flatnonzero(plan.halo_mask(core, tile_id, xyz, overlap))
-    xyz, core = xyz[seen], core[seen]
-    centre = xyz[core].mean(axis=0) if core.any() else np.zeros(3)
-    return Tile(xyz - centre, core, centre, tile_seed(run_seed, tile_id)), records[seen]
+    xyz, core, records = xyz[seen], core[seen], records[seen]
+    protected = core & rule.protected(records)
+    core &= ~protected
+    centre = xyz[core | protected].mean(axis=0) if (core | protected).any() else np.zeros(3)
+    return Tile(xyz - centre, core, centre, tile_seed(run_seed, tile_id)), records, np.flatnonzero(protected)
 
 
 @dataclass(frozen=True)
@@ -112,6 +124,7 @@ class SurveyJob:
     method: str
     ratio: float
     seed: int
+    rule: ClassRule = ClassRule()
 
 
 @dataclass(frozen=True)
@@ -129,7 +142,8 @@ class TileSurvey:
 
 def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     """Measure one tile at the scan's ratio and keep the measurement in the work folder (a resumed run reads it)."""
-    tile, _ = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap, job.seed)
+    tile, _, _ = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap, job.seed,
+                           job.rule)
     occupied = occupied_voxels(tile.xyz[tile.core], np.asarray(job.sizes))
     budget = target_count(job.ratio, tile.core_count)
     loss, spacings = FillLoss(None, 0.0), np.empty(0)

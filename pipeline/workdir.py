@@ -10,10 +10,10 @@ from __future__ import annotations
 import hashlib
 import json
 import shutil
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from importlib.metadata import version
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -22,12 +22,17 @@ from pipeline.config import RunConfig
 
 MANIFEST = "manifest.json"
 RESULT_SETTINGS = ("ratio", "method", "tile_size", "overlap", "max_tile_points", "seam_tolerance",
-                   "chunk_points", "seed")  # the settings that change the output; workers and memory do not
+                   "chunk_points", "seed", "keep_classes", "thin_classes", "levels")  # the settings that change the output; workers and memory do not
+
+
+def output_settings(config: RunConfig) -> dict[str, Any]:
+    """The settings that decide the output (not workers or memory, so outputs match whatever runs them)."""
+    return {name: value for name, value in asdict(config).items() if name in RESULT_SETTINGS}
 
 
 def run_key(inputs: Sequence[Path], config: RunConfig) -> str:
     """A digest of the inputs (resolved path, size, mtime), the output-deciding settings and the version."""
-    settings = {name: value for name, value in asdict(config).items() if name in RESULT_SETTINGS}
+    settings = output_settings(config)
     files = [(str(path.resolve()), path.stat().st_size, path.stat().st_mtime_ns) for path in inputs]
     text = json.dumps({"inputs": files, "settings": settings, "version": version("lidar-simplify")}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
@@ -37,6 +42,17 @@ def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
     """Call write(temporary_path) and rename the result to `path`, so `path` is complete or absent."""
     with atomic_output(path) as temporary:
         write(temporary)
+
+
+@dataclass(frozen=True)
+class BucketedPiece:
+    """What bucketing a piece tells the run: its occupied grid cells (cells,), their row starts in the stored
+    piece (cells+1,), the points of each cell a class rule keeps whole (cells,), and points per class (256,)."""
+
+    cells: np.ndarray
+    starts: np.ndarray
+    protected: np.ndarray
+    classes: np.ndarray
 
 
 class WorkDir:
@@ -74,17 +90,17 @@ class WorkDir:
         """Where a simplified tile's picks are kept."""
         return self.path / f"tile-{tile_id}.npz"
 
-    def finished_piece(self, number: int) -> tuple[np.ndarray, np.ndarray] | None:
-        """A bucketed piece's (cells, starts) from an earlier attempt, or None."""
+    def finished_piece(self, number: int) -> BucketedPiece | None:
+        """A bucketed piece from an earlier attempt, or None."""
         path = self.piece_path(number)
         if not path.is_file():
             return None
         with np.load(path) as saved:
-            return saved["cells"], saved["starts"]
+            return BucketedPiece(saved["cells"], saved["starts"], saved["protected"], saved["classes"])
 
-    def save_piece(self, number: int, cells: np.ndarray, starts: np.ndarray) -> None:
+    def save_piece(self, number: int, piece: BucketedPiece) -> None:
         """Record a piece as bucketed (after its rows are in the store)."""
-        write_atomically(self.piece_path(number), lambda tmp: save_npz(tmp, cells=cells, starts=starts))
+        write_atomically(self.piece_path(number), lambda tmp: save_npz(tmp, **asdict(piece)))
 
     def has_results(self) -> bool:
         """Whether any piece, survey or tile finished: worth keeping for a resume."""

@@ -23,7 +23,7 @@ def test_outputs_carry_the_run_record(tmp_path):
     vlr = next(v for v in header.vlrs if v.user_id == PROVENANCE_USER_ID)
     record = json.loads(bytes(vlr.record_data))
     assert record["method"] == "fps" and record["ratio"] == 0.2 and record["model_weights"] is None
-    assert record["settings"]["tile_size"] == 20.0  # metres, as given, though the scan is in feet
+    assert record["settings"]["tile_size"] == 20.0 and "workers" not in record["settings"]  # metres, as given
     assert record["sources"] == [str(tmp_path / "ft.las")]
     assert header.parse_crs().to_epsg() == 2992  # the input's CRS records stay
 

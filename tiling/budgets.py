@@ -116,3 +116,10 @@ def pooled_median(quantiles: list[np.ndarray], sizes: np.ndarray) -> float:
     order = np.argsort(values_flat, kind="stable")
     cumulative = np.cumsum(weights[order])
     return float(values_flat[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
+
+
+def nested_budgets(parent: np.ndarray, total: int) -> np.ndarray:
+    """(tiles,) budgets summing to `total` <= parent.sum(), each at most the parent's: a coarser level shares
+    its points between tiles as the finer one does, so each tile's level is a prefix of its finer level."""
+    parent = np.asarray(parent, dtype=np.int64)
+    return largest_remainder(parent * (total / max(int(parent.sum()), 1)), parent, total)

@@ -1,0 +1,100 @@
+"""`--levels` writes nested outputs from one simplification; `--keep-class`/`--thin-class` keep some classes
+whole and thin the rest to the ratio, with every method, across tiles and seams."""
+from __future__ import annotations
+
+import laspy
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+import pipeline
+from pipeline.classes import classification
+from pipeline.cli import cli
+from tiling.budgets import target_count
+
+WIRE, BUILDING, ROAD = 14, 6, 11
+
+
+def record_set(records: np.ndarray) -> set[bytes]:
+    """Every record, all attributes, as bytes (a point's identity in set comparisons)."""
+    return set(map(bytes, np.ascontiguousarray(records).view(np.dtype((np.void, records.dtype.itemsize)))))
+
+
+@pytest.mark.parametrize("method", ["fps", "learned"])
+def test_levels_are_nested_exact_and_the_finest_is_the_plain_run(tmp_path, street_scan, method):
+    settings = dict(method=method, tile_size=20.0, workers=1)
+    report = pipeline.run(street_scan, tmp_path / "out.laz", levels=(0.2, 0.1, 0.05), **settings)
+    paths = [tmp_path / f"out.r{r}.laz" for r in ("0.2", "0.1", "0.05")]
+    assert [p for p, _ in report.levels] == paths and not (tmp_path / "out.laz").exists()
+    kept = [laspy.read(p).points.array for p in paths]
+    assert [len(k) for k in kept] == [target_count(r, 60_000) for r in (0.2, 0.1, 0.05)]
+    sets = [record_set(k) for k in kept]
+    assert sets[1] <= sets[0] and sets[2] <= sets[1]
+    plain = pipeline.run(street_scan, tmp_path / "plain.laz", ratio=0.2, **settings)
+    assert np.array_equal(laspy.read(plain.output).points.array, kept[0])  # the same points, in the same order
+
+
+def test_coarse_levels_stay_spread_over_the_scan(tmp_path, street_scan):
+    """A level is each tile's first picks, not the first tiles: its points cover the scan's 10 m cells as the
+    finest level's do."""
+    pipeline.run(street_scan, tmp_path / "out.laz", levels=(0.2, 0.02), method="fps", tile_size=20.0, workers=1)
+    fine, coarse = (laspy.read(tmp_path / f"out.r{r}.laz") for r in ("0.2", "0.02"))
+
+    def cells(las: laspy.LasData) -> set[tuple[int, int]]:
+        return set(map(tuple, np.floor(np.column_stack([las.x, las.y]) / 10).astype(int)))
+
+    assert len(cells(coarse)) >= 0.9 * len(cells(fine))
+
+
+@pytest.mark.parametrize("method", ["random", "fps", "learned"])
+def test_keep_class_keeps_every_point_of_those_classes_with_every_attribute(tmp_path, street_scan, method):
+    source = laspy.read(street_scan).points.array
+    codes = classification(source)
+    protected = np.isin(codes, (WIRE, BUILDING))
+    report = pipeline.run(street_scan, tmp_path / "out.laz", ratio=0.1, keep_classes=(WIRE, BUILDING),
+                          method=method, tile_size=20.0, workers=1)
+    kept = laspy.read(tmp_path / "out.laz").points.array
+    assert record_set(source[protected]) <= record_set(kept)
+    thinned = len(kept) - int(protected.sum())
+    assert thinned == target_count(0.1, int((~protected).sum()))
+    assert report.kept_whole == int(protected.sum()) and report.output_points == len(kept)
+    assert len(record_set(kept)) == len(kept)  # no point twice, seams included
+
+
+def test_thin_class_thins_only_those_classes_and_levels_keep_them_all(tmp_path, street_scan):
+    source = laspy.read(street_scan).points.array
+    road = classification(source) == ROAD
+    pipeline.run(street_scan, tmp_path / "out.zarr", levels=(0.5, 0.1), thin_classes=(ROAD,), method="fps",
+                 tile_size=20.0, workers=1)
+    import zarr
+
+    for ratio in ("0.5", "0.1"):
+        group = zarr.open_group(str(tmp_path / f"out.r{ratio}.zarr"), mode="r")
+        codes = np.asarray(group["classification"][:])
+        assert (codes != ROAD).sum() == (~road).sum()
+        assert (codes == ROAD).sum() == target_count(float(ratio), int(road.sum()))
+
+
+def test_the_cli_says_both_numbers_and_names_a_missing_class(tmp_path, street_scan):
+    result = CliRunner().invoke(cli, ["run", str(street_scan), "--ratio", "0.1", "--keep-class", "14,9", "-m", "fps",
+                                      "-w", "1", "-o", str(tmp_path / "out.laz")])
+    assert result.exit_code == 0, result.output
+    wire = int((classification(laspy.read(street_scan).points.array) == WIRE).sum())
+    assert f"classes 14, 9 kept whole: {wire:,} points kept whole; the other {60_000 - wire:,} thinned to " \
+           f"{target_count(0.1, 60_000 - wire):,}" in result.stdout
+    assert "note: class 9 has no points in the scan" in result.stderr
+
+
+@pytest.mark.parametrize("args, words", [
+    (["--levels", "0.1,0.2"], "--levels must decrease"),
+    (["--levels", "0.2,0,0.1"], "--levels must be ratios in (0, 1]"),
+    (["--levels", "0.2,abc"], "--levels takes comma-separated numbers"),
+    (["--levels", "0.2,0.1", "--ratio", "0.1"], "disagrees with --levels"),
+    (["--keep-class", "6", "--thin-class", "2", "-r", "0.1"], "not both"),
+    (["--keep-class", "300", "-r", "0.1"], "codes 0-255"),
+    ([], "give --ratio"),
+])
+def test_bad_levels_and_classes_get_one_line(tmp_path, street_scan, args, words):
+    result = CliRunner().invoke(cli, ["run", str(street_scan), *args, "-o", str(tmp_path / "out.laz")])
+    assert result.exit_code == 2 and words in result.stderr and len(result.stderr.strip().splitlines()) == 1
+    assert list(tmp_path.iterdir()) == []
