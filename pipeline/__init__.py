@@ -1,34 +1,80 @@
-"""Feature-preserving simplification of large LiDAR scans; `pipeline.run(...)` mirrors `pipeline run`."""
+"""Feature-preserving simplification of large LiDAR scans: the Python twin of the `pipeline` command.
+
+`run` simplifies files to a file, `simplify` a cloud in memory to the indices it keeps; `info`,
+`evaluate` and `compare` are `pipeline info`, `eval` and `compare`. Heavy modules are imported on first
+call, so Dask workers importing `pipeline.tasks` stay light.
+"""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Sequence
-
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any, Sequence
 
 from pipeline.config import RunConfig, build_config
 from pipeline.errors import PipelineError
 
 if TYPE_CHECKING:
+    import laspy
+    import numpy as np
+    from dask.distributed import Client
+
+    from pipeline.evaluate import Reference, Score
     from pipeline.runner import RunReport
 
-__all__ = ["PipelineError", "RunConfig", "run"]
+__all__ = ["PipelineError", "RunConfig", "compare", "evaluate", "info", "run", "simplify"]
 
 
 def run(inputs: str | Path | Sequence[str | Path], output: str | Path | None = None, *, ratio: float | None = None,
         config: str | None = None, overwrite: bool = False, scratch: str | Path | None = None,
-        progress: bool = False, scheduler: str | None = None, **settings: Any) -> "RunReport":
+        progress: bool = False, scheduler: str | None = None, client: Client | None = None,
+        **settings: Any) -> RunReport:
     """Simplify a scan (one file or several that form one scan) to `output` at `ratio`.
 
     `config` names a preset (`default`, `toronto3d`, `airborne`) or a TOML file; keyword settings
     (method, tile_size, overlap, workers, memory_limit, seed, levels=(0.2, 0.1), keep_classes=(6,),
     thin_classes=(2,), ...) override it, as CLI flags do; with `levels`, `ratio` may be left out.
-    `scheduler` (tcp://host:port) runs on an existing Dask cluster instead of a local one.
+    `client` reuses the caller's Dask client (no cluster started); `scheduler` (tcp://host:port) runs on
+    an existing Dask cluster; otherwise a local cluster is started for the call.
     """
-    from pipeline.runner import run_scan  # imported here so Dask workers importing pipeline.tasks stay light
+    from pipeline.runner import run_scan
 
     if ratio is None and not settings.get("levels"):
         raise PipelineError("give ratio (the fraction of points to keep) or levels")
     paths = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
     return run_scan(paths, output, build_config(config, ratio=ratio, **settings), overwrite=overwrite,
-                    scratch=scratch, show_progress=progress, scheduler=scheduler)
+                    scratch=scratch, show_progress=progress, scheduler=scheduler, client=client)
+
+
+def simplify(points: np.ndarray | laspy.LasData, ratio: float, *, method: str = "learned", config: str | None = None,
+             client: Client | None = None, **settings: Any) -> np.ndarray:
+    """Indices of the points of an (n, 3) array or a `laspy.LasData` to keep, most important first
+    (see pipeline.in_memory.simplify): tiles, budgets and seams as `run` on the same points."""
+    from pipeline.in_memory import simplify as simplify_cloud
+
+    return simplify_cloud(points, ratio, method=method, config=config, client=client, **settings)
+
+
+def info(path: str | Path, count_points: bool = True) -> dict[str, Any]:
+    """`pipeline info`: header, CRS with EPSG and units, density, size, class and return counts of a file."""
+    from pipeline.info import summarize
+
+    return summarize(path, count_points)
+
+
+def evaluate(reference: str | Path, candidates: Sequence[str | Path], sample: int = 200_000,
+             seed: int = 0) -> tuple[Reference, list[Score]]:
+    """`pipeline eval`: every quality metric of each candidate against the reference (on `sample`
+    reference points in whole grid cells; 0: every point); CD and Hausdorff in `Reference.unit`."""
+    from pipeline.evaluate import evaluate as evaluate_files
+
+    return evaluate_files(Path(reference), [Path(c) for c in candidates], sample, seed)
+
+
+def compare(source: str | Path, ratios: Sequence[float] = (0.2, 0.1, 0.05),
+            methods: Sequence[str] = ("learned", "fps", "voxel", "random", "tcp"), out_dir: str | Path = "compare",
+            workers: int = 2, sample: int = 200_000, seed: int = 0) -> list[Path]:
+    """`pipeline compare`: simplify `source` with each method at each ratio, score them, and write the
+    table, JSON, plots and pictures to `out_dir`; return the files written."""
+    from pipeline.compare import RunOptions, compare as compare_methods
+
+    return compare_methods(Path(source), list(ratios), list(methods), Path(out_dir),
+                           RunOptions(workers=workers, seed=seed), sample)

@@ -3,14 +3,13 @@ length unit of its horizontal axes (lengths given in metres are converted to it)
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import laspy
 import numpy as np
+import pyproj
 
-if TYPE_CHECKING:
-    import pyproj
 
+_AXIS_DIRECTIONS = {"x": ("east", "west"), "y": ("north", "south"), "z": ("up", "down")}
 DEGREE_SCALE = 1e-5  # a grid step this fine (about 1 m in degrees is 1e-5) only makes sense for angles
 
 
@@ -114,3 +113,21 @@ def unit_note(unit: LengthUnit, crs_name: str) -> str | None:
         return None
     return (f"lengths are in metres and the scan is in {unit.name} ({crs_name}): --tile-size, --overlap and "
             f"--seam-tolerance are converted (1 m = {unit.of_metres(1.0):.4g} {unit.name})")
+
+
+def crs_from_wkt(wkt: str | None) -> pyproj.CRS | None:
+    """A CRS as pyproj reads its WKT (a zarr output's attribute), or None without one or when pyproj cannot parse it."""
+    try:
+        return pyproj.CRS.from_wkt(wkt) if wkt else None
+    except pyproj.exceptions.CRSError:
+        return None
+
+
+def axis_unit(crs: pyproj.CRS | None, axis: str) -> str | None:
+    """pyproj's unit name ('metre', 'foot', 'US survey foot', 'degree') of the CRS axis along x, y or z
+    (its sub-CRSs' too: a compound CRS's vertical part), or None where the CRS has no such axis."""
+    for part in (crs, *crs.sub_crs_list) if crs is not None else ():
+        for info in part.axis_info:
+            if info.direction.lower() in _AXIS_DIRECTIONS[axis] and info.unit_name:
+                return info.unit_name
+    return None

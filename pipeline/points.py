@@ -4,13 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
-import pyproj
 import zarr
 
-from pipeline.crs import LengthUnit, crs_length_unit, length_unit
+from pipeline.crs import LengthUnit, crs_from_wkt, crs_length_unit, length_unit
 from pipeline.errors import PipelineError
 from pipeline.scan import Scan
 
@@ -66,28 +65,34 @@ def length_unit_of(path: Path) -> LengthUnit:
     if not _is_zarr(path):
         return length_unit(Scan([path]).header)
     _zarr_xyz(path)  # a clear error for a store that is not ours
-    wkt = zarr.open_group(str(path), mode="r").attrs.get("crs_wkt")
-    try:
-        return crs_length_unit(pyproj.CRS.from_wkt(wkt) if wkt else None)
-    except pyproj.exceptions.CRSError:
-        return crs_length_unit(None)
+    return crs_length_unit(crs_from_wkt(zarr.open_group(str(path), mode="r").attrs.get("crs_wkt")))
 
 
-def xyz_chunks(path: Path) -> Iterator[np.ndarray]:
-    """Float64 (m, 3) coordinates of consecutive points, CHUNK at a time."""
+def chunk_count(path: Path) -> int:
+    """How many chunks xyz_chunks yields for a file: the steps of a pass over it."""
+    return -(-point_count(path) // CHUNK)
+
+
+def xyz_chunks(path: Path, on_chunk: Callable[[int], None] = lambda points: None) -> Iterator[np.ndarray]:
+    """Float64 (m, 3) coordinates of consecutive points, CHUNK at a time; `on_chunk` hears each chunk's size."""
     if _is_zarr(path):
         arrays = _zarr_xyz(path)
         for start in range(0, arrays[0].shape[0], CHUNK):
-            yield np.column_stack([np.asarray(a[start:start + CHUNK], dtype=np.float64) for a in arrays])
+            chunk = np.column_stack([np.asarray(a[start:start + CHUNK], dtype=np.float64) for a in arrays])
+            on_chunk(len(chunk))
+            yield chunk
         return
     scan = Scan([path])
     for piece in scan.pieces(CHUNK):
-        yield scan.read(piece).xyz
+        chunk = scan.read(piece).xyz
+        on_chunk(len(chunk))
+        yield chunk
 
 
-def load_xyz(path: Path, cells: Cells | None = None, margin: float = 0.0) -> np.ndarray:
+def load_xyz(path: Path, cells: Cells | None = None, margin: float = 0.0,
+             on_chunk: Callable[[int], None] = lambda points: None) -> np.ndarray:
     """All coordinates of a file, or those inside `cells` (grown by `margin`)."""
-    parts = [xyz if cells is None else xyz[cells.contains(xyz, margin)] for xyz in xyz_chunks(path)]
+    parts = [xyz if cells is None else xyz[cells.contains(xyz, margin)] for xyz in xyz_chunks(path, on_chunk)]
     return np.concatenate(parts) if parts else np.empty((0, 3))
 
 

@@ -34,8 +34,8 @@ def cross_tile_close_pairs(store: Path, tolerance: float) -> int:
     group = zarr.open_group(str(store), mode="r")
     xyz = np.column_stack([group[a][:] for a in "xyz"])
     tile = np.empty(len(xyz), dtype=np.int64)
-    for entry in group.attrs["tile_index"]:
-        tile[entry["start"]:entry["start"] + entry["count"]] = entry["tile"]
+    for tile_id, start, count in zip(group["tile"][:], group["tile_start"][:], group["tile_count"][:]):
+        tile[start:start + count] = tile_id
     pairs = cKDTree(xyz).query_pairs(tolerance, output_type="ndarray")
     return int((tile[pairs[:, 0]] != tile[pairs[:, 1]]).sum())
 

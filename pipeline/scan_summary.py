@@ -10,20 +10,11 @@ import laspy
 import numpy as np
 
 from pipeline.classes import class_histogram
-from pipeline.crs import crs_label, crs_wkt, length_unit, parsed_crs
+from pipeline.crs import axis_unit, crs_label, crs_wkt, length_unit, parsed_crs
 from pipeline.provenance import read_provenance
 from pipeline.scan import Scan, open_source
 
 COUNT_CHUNK = 2_000_000  # points decoded at a time while counting classes and returns
-
-
-def vertical_unit(header: laspy.LasHeader) -> str | None:
-    """The unit of z from a compound (or 3-D) CRS's vertical axis; None when the CRS gives no vertical axis."""
-    crs = parsed_crs(header)
-    if crs is None:
-        return None
-    axes = [axis for crs_part in (crs, *crs.sub_crs_list) for axis in crs_part.axis_info]
-    return next((axis.unit_name for axis in axes if axis.direction.lower() == "up"), None)
 
 
 def point_counts(path: Path) -> tuple[dict[int, int], dict[int, int]]:
@@ -67,7 +58,7 @@ def summarize(path: str | Path, count_points: bool = True) -> dict[str, Any]:
         "horizontal_unit": unit.name,
         "horizontal_unit_assumed": unit.assumed,
         "metres_per_unit": unit.metres,
-        "vertical_unit": vertical_unit(header),
+        "vertical_unit": axis_unit(crs, "z"),
         "area": area,
         "density": source.point_count / area if area > 0 else None,
         "dimensions": list(header.point_format.dimension_names),

@@ -9,7 +9,7 @@ say) is one more entry in PRODUCERS.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -24,7 +24,9 @@ from pipeline.evaluate import (DEFAULT_SAMPLE, METRIC_COLUMNS, Reference, Score,
                                prepare_reference, reference_json, sample_note, score, score_json)
 from pipeline.execute import cluster
 from pipeline.plots import Panel, metric_plot, region_view
+from pipeline.progress import Progress
 from pipeline.points import Cells, covering_grid, load_xyz
+from pipeline.report import density_png_path, render_report
 from pipeline.runner import run_scan
 
 REGION_POINTS = 20_000  # reference points in the pictured cell, on average over the grid: a few buildings' worth
@@ -36,6 +38,7 @@ class RunOptions:
 
     workers: int = 1
     seed: int = 0
+    progress: Progress = field(default_factory=Progress)  # a step per run (method and ratio)
 
 
 Producer = Callable[[Path, Path, float, RunOptions, Client], None]
@@ -45,7 +48,7 @@ def through_pipeline(method: str) -> Producer:
     """A producer running the pipeline with one of the tile simplifiers on the given cluster."""
     def produce(source: Path, output: Path, ratio: float, options: RunOptions, client: Client) -> None:
         config = build_config(ratio=ratio, method=method, workers=options.workers, seed=options.seed)
-        run_scan([source], output, config, overwrite=True, show_progress=False, client=client)
+        run_scan([source], output, config, overwrite=True, client=client)
 
     return produce
 
@@ -83,8 +86,9 @@ def parse_ratios(text: str) -> list[float]:
 
 
 def compare(source: Path, ratios: Sequence[float], methods: Sequence[str], out_dir: Path,
-            options: RunOptions = RunOptions(), sample: int = DEFAULT_SAMPLE) -> list[Path]:
-    """Run, score and report every method at every ratio; return the files written to `out_dir`."""
+            options: RunOptions = RunOptions(), sample: int = DEFAULT_SAMPLE, html: bool = False) -> list[Path]:
+    """Run, score and report every method at every ratio; return the files written to `out_dir`
+    (with `html`, also compare.html: the `pipeline report` page of every run, and its density-map PNG)."""
     unknown = [m for m in methods if m not in PRODUCERS]
     if unknown:
         raise PipelineError(f"unknown method(s) {', '.join(unknown)}; known: {', '.join(PRODUCERS)}")
@@ -92,16 +96,23 @@ def compare(source: Path, ratios: Sequence[float], methods: Sequence[str], out_d
         raise PipelineError(f"{source}: no such file")
     runs = out_dir / "runs"
     runs.mkdir(parents=True, exist_ok=True)
-    reference = prepare_reference(source, sample, options.seed)
+    reference = prepare_reference(source, sample, options.seed, options.progress)
     entries = []
-    with cluster(options.workers, build_config().memory_limit, None) as client:
+    with cluster(options.workers, build_config().memory_limit, None) as client, \
+            options.progress.phase("compare: run and score", len(methods) * len(ratios), unit="run") as phase:
         for method in methods:
             for ratio in ratios:
                 output = runs / f"{method}-{ratio:g}.laz"
                 PRODUCERS[method](source, output, ratio, options, client)
                 entries.append(Entry(method, ratio, score(reference, output)))
-    return [write_markdown(reference, entries, out_dir), write_json(reference, entries, out_dir),
-            *write_metric_plots(entries, out_dir), write_region(reference, entries, methods, ratios, out_dir)]
+                phase.update(1, entries[-1].score.points)
+    written = [write_markdown(reference, entries, out_dir), write_json(reference, entries, out_dir),
+               *write_metric_plots(entries, out_dir), write_region(reference, entries, methods, ratios, out_dir)]
+    if html:
+        page = render_report(reference, [e.score for e in entries], [f"{e.method} {e.ratio:g}" for e in entries],
+                             out_dir / "compare.html")
+        written += [page, density_png_path(page)]
+    return written
 
 
 def write_markdown(reference: Reference, entries: Sequence[Entry], out_dir: Path) -> Path:

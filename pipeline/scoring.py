@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
@@ -19,7 +19,8 @@ from model.geometry import PointFeatures, point_features
 from model.metrics import Quality, quality
 from pipeline.crs import LengthUnit
 from pipeline.errors import PipelineError
-from pipeline.points import Cells, covering_grid, length_unit_of, load_xyz, point_count, xyz_chunks
+from pipeline.points import Cells, chunk_count, covering_grid, length_unit_of, load_xyz, point_count, xyz_chunks
+from pipeline.progress import Progress
 
 DEFAULT_SAMPLE = 200_000
 SAMPLE_CELLS = 256
@@ -59,35 +60,40 @@ class Score:
     quality: Quality
 
 
-def sample_cells(path: Path, sample: int, seed: int) -> Cells | None:
+def sample_cells(path: Path, sample: int, seed: int,
+                 on_chunk: Callable[[int], None] = lambda points: None) -> Cells | None:
     """Seeded whole grid cells holding at least `sample` points of `path`; None when it has no more than that."""
     if sample <= 0 or point_count(path) <= sample:
         return None
-    lows, highs = zip(*((xyz.min(axis=0), xyz.max(axis=0)) for xyz in xyz_chunks(path)))
+    lows, highs = zip(*((xyz.min(axis=0), xyz.max(axis=0)) for xyz in xyz_chunks(path, on_chunk)))
     grid = covering_grid(np.min(lows, axis=0), np.max(highs, axis=0), SAMPLE_CELLS)
     counts = np.zeros(grid.shape[0] * grid.shape[1], dtype=np.int64)
-    for xyz in xyz_chunks(path):
+    for xyz in xyz_chunks(path, on_chunk):
         counts += np.bincount(grid.keys(xyz), minlength=len(counts))
     order = np.random.default_rng(seed).permutation(np.flatnonzero(counts))
     taken = int(np.searchsorted(np.cumsum(counts[order]), sample)) + 1
     return Cells(grid.origin, grid.side, grid.shape, np.sort(order[:taken]))
 
 
-def prepare_reference(path: Path, sample: int = DEFAULT_SAMPLE, seed: int = 0) -> Reference:
+def prepare_reference(path: Path, sample: int = DEFAULT_SAMPLE, seed: int = 0,
+                      progress: Progress = Progress()) -> Reference:
     """Load the reference (or its sample cells), centre it and compute its features once for every candidate."""
-    cells = sample_cells(path, sample, seed)
-    xyz, scored = load_sample(path, cells)
+    passes = 3 if 0 < sample < point_count(path) else 1  # sampling reads it twice to choose cells, then loads them
+    with progress.phase(f"read {path.name}", passes * chunk_count(path), unit="chunk") as phase:
+        cells = sample_cells(path, sample, seed, lambda points: phase.update(1, points))
+        xyz, scored = load_sample(path, cells, lambda points: phase.update(1, points))
     centre = xyz.mean(axis=0)
     xyz = xyz - centre  # kd-trees and covariances on centred coordinates (DESIGN: traps)
     return Reference(path, point_count(path), cells, centre, xyz, point_features(xyz), scored, length_unit_of(path))
 
 
-def load_sample(path: Path, cells: Cells | None) -> tuple[np.ndarray, np.ndarray | None]:
+def load_sample(path: Path, cells: Cells | None,
+                on_chunk: Callable[[int], None] = lambda points: None) -> tuple[np.ndarray, np.ndarray | None]:
     """A file's points on the sample cells grown by the margin, and the mask of those inside the cells
     (all points and None without a sample)."""
     if cells is None:
-        return load_xyz(path), None
-    xyz = load_xyz(path, cells, SAMPLE_MARGIN * cells.side)
+        return load_xyz(path, on_chunk=on_chunk), None
+    xyz = load_xyz(path, cells, SAMPLE_MARGIN * cells.side, on_chunk)
     return xyz, cells.contains(xyz)
 
 
@@ -107,13 +113,18 @@ def score(reference: Reference, path: Path) -> Score:
 
 
 def evaluate(reference_path: Path, candidates: Sequence[Path], sample: int = DEFAULT_SAMPLE,
-             seed: int = 0) -> tuple[Reference, list[Score]]:
+             seed: int = 0, progress: Progress = Progress()) -> tuple[Reference, list[Score]]:
     """Prepare the reference once, then score every candidate against it."""
     for path in (reference_path, *candidates):
         if not path.exists():
             raise PipelineError(f"{path}: no such file")
-    reference = prepare_reference(reference_path, sample, seed)
-    return reference, [score(reference, path) for path in candidates]
+    reference = prepare_reference(reference_path, sample, seed, progress)
+    scores = []
+    with progress.phase("score candidates", len(candidates), unit="file") as phase:
+        for path in candidates:
+            scores.append(score(reference, path))
+            phase.update(1, scores[-1].points)
+    return reference, scores
 
 
 def metric_cells(q: Quality) -> list[str]:

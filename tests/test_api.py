@@ -1,0 +1,61 @@
+"""The Python API: `pipeline.simplify` on a cloud in memory keeps what `pipeline.run` keeps on the same
+points, in a progressive order; a caller's Dask client is reused, not replaced."""
+from __future__ import annotations
+
+import laspy
+import numpy as np
+import pytest
+from dask.distributed import Client, LocalCluster
+
+import pipeline
+from pipeline.in_memory import progressive_order
+from tiling.budgets import target_count
+
+
+def record_set(records: np.ndarray) -> set[bytes]:
+    return set(map(bytes, np.ascontiguousarray(records).view(np.dtype((np.void, records.dtype.itemsize)))))
+
+
+@pytest.fixture(scope="module")
+def client():
+    with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+            Client(cluster) as dask_client:
+        yield dask_client
+
+
+@pytest.mark.parametrize("method", ["fps", "learned"])
+def test_simplify_keeps_what_the_file_run_keeps(tmp_path, street_scan, client, method):
+    las = laspy.read(street_scan)
+    settings = dict(method=method, tile_size=20.0, client=client)
+    kept = pipeline.simplify(las, 0.1, **settings)
+    assert len(kept) == target_count(0.1, len(las.points)) and len(np.unique(kept)) == len(kept)
+    pipeline.run(street_scan, tmp_path / "out.las", ratio=0.1, **settings)
+    assert record_set(las.points.array[kept]) == record_set(laspy.read(tmp_path / "out.las").points.array)
+
+
+def test_simplify_an_array_in_a_progressive_order(client):
+    rng = np.random.default_rng(0)
+    xyz = np.column_stack([rng.uniform(0, 80, 30_000), rng.uniform(0, 40, 30_000), rng.normal(0, 0.05, 30_000)])
+    kept = pipeline.simplify(xyz, 0.2, method="fps", tile_size=20.0, client=client)
+    assert len(kept) == 6_000 and np.array_equal(kept, pipeline.simplify(xyz, 0.2, method="fps", tile_size=20.0,
+                                                                           client=client))
+    head = xyz[kept[:300], :2]  # the first 5 % already spread over the whole cloud, tile by tile
+    occupied = np.unique(np.floor(head / 20).astype(int), axis=0)
+    assert len(occupied) == 8
+    with pytest.raises(pipeline.PipelineError, match=r"\(n, 3\) array"):
+        pipeline.simplify(xyz[:, :2], 0.2, client=client)
+
+
+def test_progressive_order_takes_each_tile_in_proportion():
+    order = progressive_order(np.array([4, 2]))
+    assert order.tolist() == [0, 4, 1, 2, 5, 3]
+
+
+def test_the_callers_client_is_reused(tmp_path, street_scan, client):
+    before = set(client.scheduler_info()["workers"])
+    pipeline.run(street_scan, tmp_path / "a.laz", ratio=0.05, method="random", client=client)
+    assert set(client.scheduler_info()["workers"]) == before and client.status == "running"
+    summary = pipeline.info(tmp_path / "a.laz")
+    assert summary["points"] == target_count(0.05, 60_000) and summary["provenance"]["method"] == "random"
+    reference, scores = pipeline.evaluate(street_scan, [tmp_path / "a.laz"], sample=0)
+    assert reference.unit.name == "metre" and scores[0].points == summary["points"]
