@@ -12,7 +12,6 @@ from pathlib import Path
 from typing import Any
 
 import laspy
-from laspy.vlrs.vlrlist import VLRList
 
 from pipeline.output_meta import OutputMeta
 
@@ -64,6 +63,6 @@ def stamped_header(header: laspy.LasHeader, meta: OutputMeta) -> laspy.LasHeader
     stamped = copy.deepcopy(header)
     stamped.generating_software = software_name()
     stamped.creation_date = datetime.date.today()
-    stamped.vlrs = VLRList([v for v in stamped.vlrs if v.user_id != PROVENANCE_USER_ID])
-    stamped.vlrs.append(provenance_vlr(meta))
+    stamped.vlrs[:] = [v for v in stamped.vlrs if v.user_id != PROVENANCE_USER_ID]  # in place: a new list makes
+    stamped.vlrs.append(provenance_vlr(meta))  # laspy regenerate the extra-bytes VLRs (two of them became one)
     return stamped

@@ -9,12 +9,14 @@ import laspy
 import numpy as np
 
 from pipeline.atomic import atomic_output
+from pipeline.copc_output import write_copc
 from pipeline.errors import PipelineError, file_system_error
 from pipeline.output_meta import OutputMeta, TilePart
 from pipeline.provenance import stamped_header
 from pipeline.zarr_output import write_zarr
 
-OUTPUT_SUFFIXES = (".las", ".laz", ".zarr")
+OUTPUT_SUFFIXES = (".las", ".laz", ".zarr")  # .copc.laz is a .laz suffix
+COPC_SUFFIX = ".copc.laz"
 
 
 def write_output(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[TilePart], meta: OutputMeta) -> int:
@@ -24,11 +26,14 @@ def write_output(path: Path, header: laspy.LasHeader, total: int, parts: Iterabl
     """
     suffix = path.suffix.lower()
     if suffix not in OUTPUT_SUFFIXES:
-        raise PipelineError(f"{path}: unsupported output type {suffix or '(none)'} (use .las, .laz or .zarr)")
+        raise PipelineError(f"{path}: unsupported output type {suffix or '(none)'} "
+                            "(use .las, .laz, .copc.laz or .zarr)")
     try:
         with atomic_output(path) as temporary:
             if suffix == ".zarr":
                 written = write_zarr(temporary, header, total, parts, meta)
+            elif path.name.lower().endswith(COPC_SUFFIX):
+                written = write_copc(temporary, stamped_header(header, meta), total, parts, meta)
             else:
                 written = _write_las(temporary, stamped_header(header, meta), parts, compress=suffix == ".laz")
     except OSError as exc:

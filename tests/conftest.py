@@ -17,11 +17,16 @@ def shared_file(relative: str) -> Path:
     return path
 
 
-@pytest.fixture(scope="session")
-def street_scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 60k-point simulated street scan (LAZ), made once per session by the project's own simulator."""
+def simulated_street(tmp_path_factory: pytest.TempPathFactory, folder: str, n_points: int, seed: int) -> Path:
+    """A simulated street scan (LAZ) of `n_points` from the project's own simulator, in a fresh folder."""
     from pipeline.simulate import write_street_scan
 
-    path = tmp_path_factory.mktemp("street") / "street.laz"
-    write_street_scan(path, n_points=60_000, seed=3)
+    path = tmp_path_factory.mktemp(folder) / "street.laz"
+    write_street_scan(path, n_points=n_points, seed=seed)
     return path
+
+
+@pytest.fixture(scope="session")
+def street_scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 60k-point simulated street scan, made once per session."""
+    return simulated_street(tmp_path_factory, "street", 60_000, 3)

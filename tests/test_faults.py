@@ -13,16 +13,14 @@ import numpy as np
 import psutil
 import pytest
 
-from pipeline.simulate import write_street_scan
+from tests.conftest import simulated_street
 
 SETTINGS = ["--ratio", "0.1", "--method", "learned", "--tile-size", "8", "--workers", "2", "--seed", "5"]
 
 
 @pytest.fixture(scope="module")
 def scan(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    path = tmp_path_factory.mktemp("faults") / "street.laz"
-    write_street_scan(path, n_points=120_000, seed=9)
-    return path
+    return simulated_street(tmp_path_factory, "faults", 120_000, 9)
 
 
 @pytest.fixture(scope="module")

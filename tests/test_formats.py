@@ -84,5 +84,6 @@ def test_real_waveform_files_keep_every_field(tmp_path, name):
     assert result.header.point_format.id == source.header.point_format.id
     rows = lambda a: np.ascontiguousarray(a).view(np.dtype((np.void, a.dtype.itemsize)))  # noqa: E731
     assert np.isin(rows(result.points.array), rows(source.points.array)).all()
-    assert [(v.user_id, v.record_id) for v in result.header.vlrs if v.user_id != "laszip encoded"] == \
-        [(v.user_id, v.record_id) for v in source.header.vlrs if v.user_id != "laszip encoded"]
+    assert sorted((v.user_id, v.record_id) for v in result.header.vlrs if v.user_id != "laszip encoded") == \
+        sorted([(v.user_id, v.record_id) for v in source.header.vlrs if v.user_id != "laszip encoded"]
+               + [("lidar-simplify", 1)])  # every input VLR, plus the run record (pipeline.provenance)

@@ -1,0 +1,298 @@
+"""The COPC output (`-o X.copc.laz`), read back by laspy's CopcReader and by copclib (and PDAL when installed)."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+from pathlib import Path
+
+import copclib
+import laspy
+import numpy as np
+import pytest
+from laspy.copc import Bounds
+
+import pipeline
+from pipeline import copc_output
+from pipeline.crs import crs_wkt
+from pipeline.errors import PipelineError
+from pipeline.output_meta import OutputMeta, TilePart
+from pipeline.provenance import read_provenance
+from pipeline.writers import write_output
+from tests.conftest import shared_file, simulated_street
+from tests.test_formats import random_scan
+
+RUN = dict(ratio=0.5, method="fps", tile_size=8.0, workers=1)
+ANGLE = 0.006  # degrees per unit of scan_angle
+
+
+@pytest.fixture(scope="module")
+def street(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return simulated_street(tmp_path_factory, "copc-street", 150_000, 4)
+
+
+@pytest.fixture(scope="module")
+def runs(street: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    """The same run written as COPC and as LAZ."""
+    folder = tmp_path_factory.mktemp("copc-runs")
+    copc, laz = folder / "out.copc.laz", folder / "out.laz"
+    pipeline.run(street, copc, **RUN)
+    pipeline.run(street, laz, **RUN)
+    return copc, laz
+
+
+def copclib_nodes(path: Path) -> dict[tuple[int, int, int, int], np.ndarray]:
+    """Every node's decompressed records, read by copclib (C++ copc-lib and laz-perf, not lazrs)."""
+    reader = copclib.FileReader(str(path))
+    dtype = laspy.open(path).header.point_format.dtype()
+    nodes = {(n.key.d, n.key.x, n.key.y, n.key.z): np.frombuffer(bytes(reader.GetPointData(n)), dtype=dtype)
+             for n in reader.GetAllNodes() if n.point_count > 0}
+    reader.Close()
+    return nodes
+
+
+def table(records: np.ndarray, point_format: laspy.PointFormat) -> np.ndarray:
+    """(n, dims) float64 rows of every dimension of `point_format`, scan angle in degrees, in a canonical order."""
+    record = laspy.PackedPointRecord(records, point_format)
+    columns = []
+    for name in point_format.dimension_names:
+        values = np.asarray(record[name], dtype=np.float64)
+        columns.append(values * ANGLE if name == "scan_angle" else values)
+    rows = np.column_stack(columns)
+    return rows[np.lexsort(rows.T[::-1])]
+
+
+def as_copc(records: np.ndarray, point_format: laspy.PointFormat) -> np.ndarray:
+    """Records of a LAS 1.2 format in the COPC format's fields, by field meaning: the test's own conversion."""
+    source = laspy.PackedPointRecord(records, point_format)
+    target = copc_output.copc_point_format(point_format)
+    converted = laspy.PackedPointRecord.zeros(len(records), target)
+    for name in target.dimension_names:
+        if name == "scan_angle":
+            converted[name] = np.round(np.asarray(source["scan_angle_rank"]) / ANGLE).astype(np.int16)
+        elif name in point_format.dimension_names:
+            converted[name] = np.asarray(source[name])
+    return converted.array
+
+
+def test_copc_run_holds_the_laz_runs_records(runs):
+    """laspy (as plain LAZ and through the octree) and copclib all read the LAZ run's records, in format 7."""
+    copc, laz = runs
+    source = laspy.read(laz)
+    assert source.header.point_format.id == 3
+    target = copc_output.copc_point_format(source.point_format)
+    expected = table(as_copc(source.points.array, source.point_format), target)
+    plain = laspy.read(copc)
+    assert plain.header.point_format.id == 7 and plain.header.version == "1.4"
+    with laspy.CopcReader.open(copc) as reader:
+        octree = reader.query().array
+    by_copclib = np.concatenate(list(copclib_nodes(copc).values()))
+    for records in (plain.points.array, octree, by_copclib):
+        assert len(records) == len(source.points) == 75_000
+        np.testing.assert_array_equal(table(records, plain.point_format), expected)
+
+
+def test_copc_header_keeps_crs_provenance_and_bounds(runs, street):
+    copc, laz = runs
+    header, plain = laspy.open(copc).header, laspy.open(laz).header
+    assert header.vlrs[0].user_id == "copc" and header.global_encoding.wkt
+    assert any(isinstance(v, laspy.vlrs.known.WktCoordinateSystemVlr) for v in header.vlrs)
+    assert header.parse_crs() == laspy.open(street).header.parse_crs() is not None
+    record = read_provenance(header)
+    assert record is not None and (record["method"], record["ratio"]) == ("fps", 0.5)
+    assert header.generating_software == plain.generating_software
+    np.testing.assert_allclose(header.mins, plain.mins), np.testing.assert_allclose(header.maxs, plain.maxs)
+    assert header.point_count == plain.point_count
+    assert list(header.number_of_points_by_return) == list(plain.number_of_points_by_return[:5]) + [0] * 10
+
+
+def test_bounds_query_returns_exactly_the_points_inside(runs):
+    """Boxes with faces on the coordinate grid, so 'inside' is exact in the integer coordinates."""
+    copc, _ = runs
+    everything = laspy.read(copc)
+    header = everything.header
+    ints = np.column_stack([everything.X, everything.Y, everything.Z])
+    rng = np.random.default_rng(0)
+    with laspy.CopcReader.open(copc) as reader:
+        for _ in range(5):
+            centre = ints[rng.integers(len(ints))]
+            low, high = (centre + sign * np.round(rng.uniform(0.5, 4, size=3) / header.scales) for sign in (-1, 1))
+            box = Bounds(low * header.scales + header.offsets, high * header.scales + header.offsets)
+            inside = np.all((ints >= low) & (ints <= high), axis=1)
+            found = reader.query(bounds=box).array
+            assert len(found) == inside.sum() > 0
+            np.testing.assert_array_equal(table(found, everything.point_format),
+                                          table(everything.points.array[inside], everything.point_format))
+
+
+def priority_parts(las: laspy.LasData, tile: float, seed: int) -> list[TilePart]:
+    """The scan cut into square tiles, each in a random 'priority' order; point_source_id = the point's index."""
+    records = las.points.array.copy()
+    records["point_source_id"] = np.arange(len(records))
+    cells = np.floor((np.column_stack([las.x, las.y]) - las.header.mins[:2]) / tile).astype(np.int64)
+    code = cells[:, 0] * 100_000 + cells[:, 1]
+    rng = np.random.default_rng(seed)
+    return [TilePart(t, (0.0, 0.0, 0.0, 0.0), records[rng.permutation(np.flatnonzero(code == c))])
+            for t, c in enumerate(np.unique(code))]
+
+
+def expected_levels(parts: list[TilePart], total: int, node_points: int) -> dict[int, int]:
+    """Point id -> level by the documented rule: depth D the least with total * 3 / (4^(D+1) - 1) <= node_points,
+    level l for priority (i + 0.5) / n in [C(l-1), C(l)), C(l) = (4^(l+1) - 1) / (4^(D+1) - 1)."""
+    depth = 0
+    while total * 3 > node_points * (4 ** (depth + 1) - 1):
+        depth += 1
+    bounds = [(4 ** (level + 1) - 1) / (4 ** (depth + 1) - 1) for level in range(depth + 1)]
+    levels = {}
+    for part in parts:
+        n = len(part.records)
+        for i, point in enumerate(part.records["point_source_id"]):
+            levels[int(point)] = next(level for level, c in enumerate(bounds) if (i + 0.5) / n < c)
+    return levels
+
+
+@pytest.fixture()
+def octree(street_scan: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """The 60k street written through write_output with 2,000-point nodes (four levels), its parts and path."""
+    monkeypatch.setattr(copc_output, "NODE_POINTS", 2_000)
+    las = laspy.read(street_scan)
+    parts = priority_parts(las, tile=4.0, seed=1)
+    path = tmp_path / "tiles.copc.laz"
+    meta = OutputMeta(crs_wkt(las.header), [str(street_scan)], 1.0, "random", "test", {})
+    assert write_output(path, las.header, len(las.points), iter(parts), meta) == len(las.points)
+    return path, parts, las
+
+
+def test_levels_are_every_tiles_priority_prefix(octree):
+    path, parts, las = octree
+    levels = expected_levels(parts, len(las.points), 2_000)
+    assert max(levels.values()) == 3
+    nodes = copclib_nodes(path)
+    rank = {int(p): (t, i) for t, part in enumerate(parts) for i, p in enumerate(part.records["point_source_id"])}
+    for (level, *_), records in nodes.items():
+        ids = records["point_source_id"]
+        assert all(levels[int(p)] == level for p in ids)
+        order = [rank[int(p)] for p in ids]
+        assert order == sorted(order)  # tile by tile, priority order within a tile
+    with laspy.CopcReader.open(path) as reader:
+        for level in range(4):
+            found = np.sort(reader.query(level=level)["point_source_id"])
+            np.testing.assert_array_equal(found, sorted(p for p, lv in levels.items() if lv == level))
+        coarse = reader.query(resolution=reader.copc_info.spacing)  # the root's spacing: the root only
+        assert len(coarse) == sum(1 for lv in levels.values() if lv == 0)
+
+
+def test_every_node_lies_in_its_cube(octree):
+    path, _, las = octree
+    with laspy.CopcReader.open(path) as reader:
+        low = reader.copc_info.center - reader.copc_info.halfsize
+        edge = (reader.copc_info.center[0] + reader.copc_info.halfsize) - low[0]
+    header = laspy.open(path).header
+    for (level, *key), records in copclib_nodes(path).items():
+        xyz = np.column_stack([records[a] for a in "XYZ"]) * header.scales + header.offsets
+        side = edge / 2 ** level
+        assert np.all(xyz >= low + np.array(key) * side) and np.all(xyz <= low + (np.array(key) + 1) * side)
+    assert copclib.FileReader(str(path)).ValidateSpatialBounds(False)
+
+
+def test_splitting_a_level_in_passes_gives_the_same_nodes(octree, tmp_path, monkeypatch):
+    """Levels larger than the load buffer are split into child files first: the nodes do not change."""
+    path, parts, las = octree
+    monkeypatch.setattr(copc_output, "LOAD_POINTS", 1_500)
+    split = tmp_path / "split.copc.laz"
+    write_output(split, las.header, len(las.points), iter(parts), OutputMeta(None, [], 1.0, "random", "test", {}))
+    whole, pieces = copclib_nodes(path), copclib_nodes(split)
+    assert whole.keys() == pieces.keys()
+    assert all(np.array_equal(whole[key], pieces[key]) for key in whole)
+
+
+@pytest.mark.parametrize("point_format", [1, 3])
+def test_legacy_point_formats_become_6_and_7_with_every_field(tmp_path, point_format):
+    source = random_scan(point_format)
+    source_path = tmp_path / "in.las"
+    source.write(source_path)
+    out = tmp_path / "out.copc.laz"
+    pipeline.run(source_path, out, ratio=0.3, method="fps", workers=1, tile_size=10)
+    with laspy.CopcReader.open(out) as reader:
+        result = reader.query()
+        assert reader.header.point_format.id == {1: 6, 3: 7}[point_format]
+    assert "confidence" in result.point_format.dimension_names and len(result) == 900
+    kept = {tuple(row) for row in table(result.array, result.point_format)}
+    converted = as_copc(source.points.array, source.point_format)
+    assert kept <= {tuple(row) for row in table(converted, result.point_format)}
+    assert len(np.unique(result["scan_angle"])) > 100 and len(np.unique(result["classification"])) > 10
+
+
+def test_input_evlrs_follow_the_hierarchy(tmp_path):
+    source = random_scan(6)
+    source.header.evlrs = laspy.vlrs.vlrlist.VLRList([laspy.VLR("survey", 7, "note", b"x" * 70_000)])
+    out = tmp_path / "out.copc.laz"
+    write_output(out, source.header, 3_000, iter([TilePart(0, (0.0, 0.0, 0.0, 0.0), source.points.array)]),
+                 OutputMeta(None, [], 1.0, "random", "test", {}))
+    evlrs = laspy.read(out).header.evlrs
+    assert [(v.user_id, v.record_id) for v in evlrs] == [("copc", 1000), ("survey", 7)]
+    assert bytes(evlrs[1].record_data) == b"x" * 70_000
+    with laspy.CopcReader.open(out) as reader:
+        assert len(reader.query()) == 3_000
+
+
+def test_waveform_formats_are_refused(tmp_path):
+    source = random_scan(4)
+    with pytest.raises(PipelineError, match="waveform"):
+        write_output(tmp_path / "out.copc.laz", source.header, 3_000,
+                     iter([TilePart(0, (0.0, 0.0, 0.0, 0.0), source.points.array)]),
+                     OutputMeta(None, [], 1.0, "random", "test", {}))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failed_write_leaves_no_output_and_no_scratch(street_scan, tmp_path):
+    las = laspy.read(street_scan)
+    meta = OutputMeta(None, [], 1.0, "random", "test", {})
+    folder = tmp_path / "out"
+    folder.mkdir()
+
+    def failing_parts():
+        yield TilePart(0, (0.0, 0.0, 0.0, 0.0), las.points.array[:1000])
+        raise RuntimeError("tile 1 could not be read")
+
+    with pytest.raises(RuntimeError, match="tile 1"):
+        write_output(folder / "out.copc.laz", las.header, 2000, failing_parts(), meta)
+    assert list(folder.iterdir()) == []
+    with pytest.raises(PipelineError, match="wrote 1000 points where 2000 were planned"):
+        write_output(folder / "out.copc.laz", las.header, 2000,
+                     iter([TilePart(0, (0.0, 0.0, 0.0, 0.0), las.points.array[:1000])]), meta)
+    assert list(folder.iterdir()) == []
+
+
+def test_overwrite_replaces_only_a_las_file(street_scan, tmp_path):
+    out = tmp_path / "out.copc.laz"
+    out.write_text("notes")
+    with pytest.raises(PipelineError, match="already exists"):
+        pipeline.run(street_scan, out, **RUN)
+    with pytest.raises(PipelineError, match="not a LAZ file"):
+        pipeline.run(street_scan, out, overwrite=True, **RUN)
+    assert out.read_text() == "notes"
+
+
+def test_copc_input_to_copc_output(tmp_path):
+    source = shared_file("lone-star.copc.laz")
+    out = tmp_path / "lone-star.copc.laz"
+    report = pipeline.run(source, out, ratio=0.05, method="random", workers=1)
+    with laspy.CopcReader.open(out) as reader:
+        assert len(reader.query()) == report.output_points
+        assert [v.user_id for v in reader.header.vlrs].count("copc") == 1
+    assert sum(len(r) for r in copclib_nodes(out).values()) == report.output_points
+
+
+@pytest.mark.skipif(shutil.which("pdal") is None,
+                    reason="PDAL's `pdal` command is not installed (Debian bookworm has no pdal package)")
+def test_pdal_reads_every_point(runs, tmp_path):
+    copc, laz = runs
+    info = json.loads(subprocess.run(["pdal", "info", "--summary", str(copc)], check=True, capture_output=True,
+                                     text=True).stdout)
+    assert info["summary"]["num_points"] == 75_000
+    copy = tmp_path / "copy.las"
+    subprocess.run(["pdal", "translate", "--reader", "readers.copc", str(copc), str(copy)], check=True)
+    result = laspy.read(copy)
+    np.testing.assert_array_equal(table(result.points.array, result.point_format),
+                                  table(laspy.read(copc).points.array, result.point_format))
