@@ -259,7 +259,7 @@ def run_bench(scans: list[str], ratios: list[float], methods: list[str], peer: b
                 for method in methods:
                     output = work / f"{method}.las"
                     run_scan([path], output, build_config(ratio=ratio, method=method, workers=2), overwrite=True,
-                             show_progress=False, client=client)
+                             client=client)
                     picks[method] = kept_indices(output, las)
                 picks[UNTILED] = untiled_fps(xyz, count)
                 if peer and shutil.which("CloudCompare"):

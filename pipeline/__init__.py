@@ -17,7 +17,7 @@ if TYPE_CHECKING:
     import numpy as np
     from dask.distributed import Client
 
-    from pipeline.evaluate import Reference, Score
+    from pipeline.scoring import Reference, Score
     from pipeline.runner import RunReport
 
 __all__ = ["PipelineError", "RunConfig", "compare", "evaluate", "info", "run", "simplify"]
@@ -32,16 +32,19 @@ def run(inputs: str | Path | Sequence[str | Path], output: str | Path | None = N
     `config` names a preset (`default`, `toronto3d`, `airborne`) or a TOML file; keyword settings
     (method, tile_size, overlap, workers, memory_limit, seed, levels=(0.2, 0.1), keep_classes=(6,),
     thin_classes=(2,), ...) override it, as CLI flags do; with `levels`, `ratio` may be left out.
+    `progress` shows bars at a terminal, else a line every 10 s on stderr.
     `client` reuses the caller's Dask client (no cluster started); `scheduler` (tcp://host:port) runs on
     an existing Dask cluster; otherwise a local cluster is started for the call.
     """
+    from pipeline.progress import Progress
     from pipeline.runner import run_scan
 
     if ratio is None and not settings.get("levels"):
         raise PipelineError("give ratio (the fraction of points to keep) or levels")
     paths = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
     return run_scan(paths, output, build_config(config, ratio=ratio, **settings), overwrite=overwrite,
-                    scratch=scratch, show_progress=progress, scheduler=scheduler, client=client)
+                    scratch=scratch, progress=Progress.for_terminal() if progress else None, scheduler=scheduler,
+                    client=client)
 
 
 def simplify(points: np.ndarray | laspy.LasData, ratio: float, *, method: str = "learned", config: str | None = None,
@@ -55,7 +58,7 @@ def simplify(points: np.ndarray | laspy.LasData, ratio: float, *, method: str = 
 
 def info(path: str | Path, count_points: bool = True) -> dict[str, Any]:
     """`pipeline info`: header, CRS with EPSG and units, density, size, class and return counts of a file."""
-    from pipeline.info import summarize
+    from pipeline.scan_summary import summarize
 
     return summarize(path, count_points)
 
@@ -64,7 +67,7 @@ def evaluate(reference: str | Path, candidates: Sequence[str | Path], sample: in
              seed: int = 0) -> tuple[Reference, list[Score]]:
     """`pipeline eval`: every quality metric of each candidate against the reference (on `sample`
     reference points in whole grid cells; 0: every point); CD and Hausdorff in `Reference.unit`."""
-    from pipeline.evaluate import evaluate as evaluate_files
+    from pipeline.scoring import evaluate as evaluate_files
 
     return evaluate_files(Path(reference), [Path(c) for c in candidates], sample, seed)
 
@@ -74,7 +77,7 @@ def compare(source: str | Path, ratios: Sequence[float] = (0.2, 0.1, 0.05),
             workers: int = 2, sample: int = 200_000, seed: int = 0) -> list[Path]:
     """`pipeline compare`: simplify `source` with each method at each ratio, score them, and write the
     table, JSON, plots and pictures to `out_dir`; return the files written."""
-    from pipeline.compare import RunOptions, compare as compare_methods
+    from pipeline.comparison import RunOptions, compare as compare_methods
 
     return compare_methods(Path(source), list(ratios), list(methods), Path(out_dir),
                            RunOptions(workers=workers, seed=seed), sample)

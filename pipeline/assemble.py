@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 
@@ -37,12 +37,13 @@ class TileResult:
             return cls(saved["records"], saved["xyz"], saved["whole"], saved["whole_xyz"])
 
 
-def seam_rejections(plan: TilePlan, results: dict[int, str], budgets: np.ndarray,
-                    tolerance: float) -> dict[int, np.ndarray]:
+def seam_rejections(plan: TilePlan, results: dict[int, str], budgets: np.ndarray, tolerance: float,
+                    on_tile: Callable[[], None] = lambda: None) -> dict[int, np.ndarray]:
     """Candidate ranks each tile gives up so no two kept points of different tiles are closer than
-    `tolerance`; only candidates near a tile's border are held in memory."""
+    `tolerance`; only candidates near a tile's border are held in memory. `on_tile` hears each tile read."""
     bands, candidate_counts = [], np.zeros(len(plan.tiles), dtype=np.int64)
     for tile_id, path in sorted(results.items()):
+        on_tile()
         xyz = TileResult.load(path).xyz
         candidate_counts[tile_id] = len(xyz)
         near = np.flatnonzero(band_mask(xyz, plan.bounds(tile_id), tolerance))

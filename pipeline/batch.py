@@ -27,6 +27,7 @@ from pipeline.config import RunConfig, build_config, checked_settings
 from pipeline.errors import PipelineError
 from pipeline.execute import cluster
 from pipeline.output_guard import is_same_file
+from pipeline.progress import Progress
 from pipeline.runner import default_output, run_scan, written_paths
 from pipeline.workdir import run_key, write_atomically
 
@@ -159,18 +160,22 @@ class Manifest:
 
 
 def run_batch(jobs: list[BatchJob], manifest: Manifest, log: Callable[[dict[str, Any]], None],
-              overwrite: bool = False, scheduler: str | None = None, scratch: Path | None = None) -> BatchSummary:
-    """Run every job not already done on one cluster; a failed job is recorded and the batch goes on."""
+              overwrite: bool = False, scheduler: str | None = None, scratch: Path | None = None,
+              progress: Progress = Progress()) -> BatchSummary:
+    """Run every job not already done on one cluster; a failed job is recorded and the batch goes on.
+    `progress` shows each run's phases and a step per job."""
     check_batch_outputs(jobs)
     summary = BatchSummary()
     first = jobs[0].config
-    with cluster(first.workers, first.memory_limit, scheduler) as client:
+    with cluster(first.workers, first.memory_limit, scheduler) as client, \
+            progress.phase("batch", len(jobs), unit="job") as batch_phase:
         for job in jobs:
             event = {"input": [str(p) for p in job.inputs], "output": str(job.output)}
             key = run_key(job.inputs, job.config) if all(p.is_file() for p in job.inputs) else ""
             if key and manifest.is_done(job, key):
                 summary.skipped += 1
                 log({"event": "skipped", **event})
+                batch_phase.update(1)
                 continue
             log({"event": "started", **event})
             started = time.time()
@@ -178,14 +183,16 @@ def run_batch(jobs: list[BatchJob], manifest: Manifest, log: Callable[[dict[str,
             try:
                 job.output.parent.mkdir(parents=True, exist_ok=True)
                 report = run_scan(list(job.inputs), job.output, job.config, overwrite=overwrite or ours,
-                                  scratch=scratch, show_progress=False, client=client)
+                                  scratch=scratch, client=client, progress=progress)
             except Exception as exc:  # one scan's failure, whatever it is, must not stop the nightly batch
                 message = str(exc) if isinstance(exc, PipelineError) else f"{type(exc).__name__}: {exc}"
                 summary.failed.append(str(job.output))
                 manifest.record(job, {"status": "failed", "error": message, "key": key})
                 log({"event": "failed", **event, "error": message, "seconds": round(time.time() - started, 3)})
+                batch_phase.update(1)
                 continue
             summary.done += 1
+            batch_phase.update(1, report.input_points)
             outcome = {"status": "done", "key": key, "input_points": report.input_points,
                        "output_points": report.output_points, "seconds": round(report.seconds, 3)}
             manifest.record(job, outcome)

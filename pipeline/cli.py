@@ -12,8 +12,10 @@ import click
 import configs
 from pipeline.config import METHODS, build_config, parse_list
 from pipeline.errors import Interrupted, PipelineError, Terminated, file_system_error, signal_exit_code
-from pipeline.evaluate import DEFAULT_SAMPLE
-from pipeline.info import format_summary, summarize
+from pipeline.scoring import DEFAULT_SAMPLE
+from pipeline.scan_summary import format_summary, summarize
+from pipeline.report_region import COLORS, parse_region
+from pipeline.progress import Progress
 
 EXIT_ERROR = 2
 
@@ -130,7 +132,7 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
             return
         note_worker_cap(settings.workers, scheduler)
         report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch,
-                          show_progress=not quiet and not log_json and sys.stderr.isatty(), scheduler=scheduler,
+                          progress=Progress.for_terminal(quiet, log_json), scheduler=scheduler,
                           note=None if quiet or log_json else lambda line: click.echo(f"pipeline: note: {line}",
                                                                                       err=True))
     except PipelineError as exc:
@@ -190,7 +192,8 @@ def batch_command(jobs: Path, out_dir: Path | None, ratio: float | None, method:
     default_manifest = out_dir / "batch-manifest.json" if out_dir else jobs.with_suffix(".manifest.json")
     log = log_json_line if log_json else log_human_line
     note_worker_cap(job_list[0].config.workers, scheduler)
-    summary = run_batch(job_list, Manifest(manifest or default_manifest), log, overwrite, scheduler, scratch)
+    summary = run_batch(job_list, Manifest(manifest or default_manifest), log, overwrite, scheduler, scratch,
+                        Progress.for_terminal(log_json=log_json))
     log({"event": "batch", "done": summary.done, "skipped": summary.skipped, "failed": len(summary.failed)})
     if summary.failed:
         sys.exit(1)
@@ -235,9 +238,9 @@ def info_command(input_file: Path, as_json: bool, header_only: bool) -> None:
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the sample.")
 def eval_command(reference: Path, candidates: tuple[Path, ...], as_json: bool, sample: int, seed: int) -> None:
     """Score CANDIDATE outputs (LAS/LAZ/PLY/zarr) against REFERENCE: CD, Hausdorff, NC, CE, RE, SDM."""
-    from pipeline.evaluate import evaluate, format_scores, reference_json, score_json
+    from pipeline.scoring import evaluate, format_scores, reference_json, score_json
 
-    ref, scores = evaluate(reference, list(candidates), sample, seed)
+    ref, scores = evaluate(reference, list(candidates), sample, seed, Progress.for_terminal())
     click.echo(json.dumps({**reference_json(ref), "candidates": [score_json(s) for s in scores]}, indent=2)
                if as_json else format_scores(ref, scores))
 
@@ -253,14 +256,35 @@ def eval_command(reference: Path, candidates: tuple[Path, ...], as_json: bool, s
 @click.option("--sample", type=int, default=DEFAULT_SAMPLE, show_default=True,
               help="Evaluate on seeded whole grid cells holding about this many input points; 0: every point.")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the runs and of the sample.")
+@click.option("--html", is_flag=True, help="Also write compare.html: the `pipeline report` page of every run.")
 def compare_command(input_file: Path, ratios: str, methods: str, out_dir: Path, workers: int, sample: int,
-                    seed: int) -> None:
+                    seed: int, html: bool) -> None:
     """Simplify INPUT with each method at each ratio and compare them: table, JSON, plots, a region view."""
-    from pipeline.compare import RunOptions, compare, parse_list, parse_ratios
+    from pipeline.comparison import RunOptions, compare, parse_list, parse_ratios
 
     written = compare(input_file, parse_ratios(ratios), parse_list(methods, "--methods"), out_dir,
-                      RunOptions(workers=workers, seed=seed), sample)
+                      RunOptions(workers=workers, seed=seed, progress=Progress.for_terminal()), sample, html)
     click.echo("\n".join(str(path) for path in written))
+
+
+@cli.command("report")
+@click.argument("source", type=click.Path(path_type=Path))
+@click.argument("outputs", metavar="OUTPUT...", nargs=-1, required=True, type=click.Path(path_type=Path))
+@click.option("--output", "-o", "page", type=click.Path(path_type=Path), default=Path("report.html"),
+              show_default=True, help="The HTML page (the density maps also go beside it as NAME.density.png).")
+@click.option("--region", default=None, metavar="X,Y,SIZE",
+              help="Show this square in 3-D: centre and side in the scan's units. [default: the most structured cell]")
+@click.option("--color", type=click.Choice(COLORS), default="elevation",
+              show_default=True, help="What colours the 3-D points (one scale, fixed from the source).")
+@click.option("--sample", type=int, default=DEFAULT_SAMPLE, show_default=True,
+              help="Evaluate on seeded whole grid cells holding about this many source points; 0: every point.")
+def report_command(source: Path, outputs: tuple[Path, ...], page: Path, region: str | None, color: str,
+                   sample: int) -> None:
+    """One self-contained HTML page judging OUTPUT(s) against SOURCE: a before/after 3-D view of one region,
+    a kept-to-expected density map per output, the metrics with units, and how each output was made."""
+    from pipeline.report import write_report
+
+    click.echo(write_report(source, list(outputs), page, parse_region(region) if region else None, color, sample))
 
 
 @cli.command("demo")
@@ -281,7 +305,7 @@ def demo_command(out_dir: Path, points: int, ratio: float, workers: int | None) 
         write_street_scan(scan, n_points=points, seed=0)
     settings = build_config("toronto3d", ratio=ratio, workers=workers)
     report = run_scan([scan], out_dir / "demo_street.simplified.laz", settings, overwrite=True,
-                      show_progress=sys.stderr.isatty())
+                      progress=Progress.for_terminal())
     click.echo(f"{report.output}: {report.output_points:,} of {report.input_points:,} points "
                f"({report.tiles} tiles, {report.seconds:.1f} s)")
 

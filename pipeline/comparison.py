@@ -20,7 +20,7 @@ from model.geometry import point_features
 from model.registry import METHODS
 from pipeline.config import build_config
 from pipeline.errors import PipelineError
-from pipeline.evaluate import (DEFAULT_SAMPLE, METRIC_COLUMNS, Reference, Score, markdown_table, metric_cells,
+from pipeline.scoring import (DEFAULT_SAMPLE, METRIC_COLUMNS, Reference, Score, markdown_table, metric_cells,
                                prepare_reference, reference_json, sample_note, score, score_json)
 from pipeline.execute import cluster
 from pipeline.plots import Panel, metric_plot, region_view

@@ -4,7 +4,6 @@ from __future__ import annotations
 import logging
 import os
 import socket
-import time
 from contextlib import contextmanager
 from typing import Any, Callable, ContextManager, Iterator, Sequence
 from urllib.parse import urlsplit
@@ -12,9 +11,9 @@ from urllib.parse import urlsplit
 import dask
 from dask.distributed import Client, LocalCluster, WorkerPlugin, as_completed
 from distributed.scheduler import KilledWorker
-from tqdm import tqdm
 
 from pipeline.errors import PipelineError
+from pipeline.progress import Progress
 
 ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
 WORKER_PRELOAD = "pipeline.worker_setup"  # imported as each worker starts: the tasks, and signals left to the run
@@ -132,20 +131,19 @@ class QuietWorkerLogs(WorkerPlugin):
 
 
 def map_tasks(client: Client, function: Callable, items: Sequence[Any], *shared: Any, desc: str,
-              show_progress: bool, weight: Callable[[Any], int] = lambda result: 0) -> list[Any]:
+              progress: Progress, weight: Callable[[Any], int] = lambda result: 0) -> list[Any]:
     """function(item, *shared) for every item on the cluster; results in item order.
 
     `shared` values become one task each that every task depends on, so a worker fetches them once;
     unlike scattered data, the scheduler can recompute them if the workers holding them die. Tasks
-    of a lost worker are rerun elsewhere (Dask allows 3 losses a task). The bar counts finished tasks
+    of a lost worker are rerun elsewhere (Dask allows 3 losses a task). Progress counts finished tasks
     and, through `weight`, points per second.
     """
     shared_futures = [client.submit(_same, value, pure=False) for value in shared]
     futures = [client.submit(function, item, *shared_futures, pure=False) for item in items]
     position = {future.key: i for i, future in enumerate(futures)}
     results: list[Any] = [None] * len(items)
-    started, points = time.perf_counter(), 0
-    with tqdm(total=len(items), desc=desc, unit="task", disable=not show_progress, leave=False) as bar:
+    with progress.phase(desc, len(items)) as phase:
         for future in as_completed(futures):
             try:
                 result = future.result()
@@ -159,10 +157,7 @@ def map_tasks(client: Client, function: Callable, items: Sequence[Any], *shared:
                                         "of memory: raise --memory-limit or lower --max-tile-points") from None
                 raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
             results[position[future.key]] = result
-            points += weight(result)
-            if points:
-                bar.set_postfix_str(f"{points / max(time.perf_counter() - started, 1e-9):,.0f} points/s")
-            bar.update()
+            phase.update(1, weight(result))
     return results
 
 

@@ -39,7 +39,7 @@ def simplify(points: np.ndarray | laspy.LasData, ratio: float, *, method: str = 
         _write_indexed(points, source)
         output = Path(folder) / "kept.zarr"
         run_scan([source], output, build_config(config, ratio=ratio, method=method, **settings),
-                 show_progress=False, client=client)
+                 client=client)
         group = zarr.open_group(str(output), mode="r")
         index = np.asarray(group[INDEX_DIMENSION][:], dtype=np.int64)
         counts = np.asarray(group["tile_count"][:], dtype=np.int64)

@@ -21,12 +21,14 @@ from pipeline.atomic import remove_stale_temporaries
 from pipeline.classes import ClassRule
 from pipeline.execute import cluster, map_tasks
 from pipeline.output_guard import check_output
+from pipeline.progress import Progress, counted
 from pipeline.scan import Piece, Scan
 from pipeline.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, simplify_tile, survey_tile
 from pipeline.validate import check_run
 from pipeline.workdir import WorkDir, output_settings
 from pipeline.output_meta import OutputMeta
-from pipeline.writers import OUTPUT_SUFFIXES, write_output
+from pipeline.copc_output import copc_point_format
+from pipeline.writers import COPC_SUFFIX, OUTPUT_SUFFIXES, write_output
 from tiling.budgets import (coverage_weights, even_spacing, nested_budgets, pooled_median, saliency_weights,
                             target_count, tile_budgets, voxels_at)
 from tiling.bucket import cell_boxes, row_ranges
@@ -77,7 +79,7 @@ def default_output(first_input: Path) -> Path:
 
 
 def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: RunConfig, overwrite: bool = False,
-             scratch: str | Path | None = None, show_progress: bool = True, scheduler: str | None = None,
+             scratch: str | Path | None = None, progress: Progress | None = None, scheduler: str | None = None,
              client: Client | None = None, note: Callable[[str], None] | None = None) -> RunReport:
     """Simplify one scan (one or more files) to `output`; the Python twin of `pipeline run`.
 
@@ -94,6 +96,11 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     outputs = written_paths(output, config.levels)
     for path in outputs:
         check_output(path, [Path(p) for p in inputs], overwrite, OUTPUT_SUFFIXES)
+        if path.name.lower().endswith(COPC_SUFFIX):  # refused now, not after the whole simplification
+            try:
+                copc_point_format(scan.point_format)
+            except PipelineError as exc:
+                raise PipelineError(f"{path}: {exc}") from None
     check_run(scan, config.allow_geographic, Path(scratch or output.parent),
               kept=int(target_count(config.ratio, scan.point_count) * (1 + RESERVE_SHARE)),
               surveyed=config.method in FILL_LOSSES)
@@ -111,7 +118,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     try:
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler) as active:
             written, tiles, resumed, kept_whole = simplify_scan(scan, outputs, config, settings, work, active, clock,
-                                                                show_progress, note or (lambda line: None))
+                                                                progress or Progress(), note or (lambda line: None))
     except PipelineError as exc:
         if not work.has_results():
             work.remove()
@@ -151,7 +158,7 @@ def interrupted(exc: KeyboardInterrupt, work: WorkDir, written: Path | None) -> 
 
 
 def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: dict[str, Any], work: WorkDir,
-                  client: Client, clock: "PhaseClock", show_progress: bool,
+                  client: Client, clock: "PhaseClock", progress: Progress,
                   note: Callable[[str], None]) -> tuple[list[int], int, int, int]:
     """Bucket, plan, simplify every tile on the cluster, stitch and write each level; return points written
     per output, tiles, tiles found finished by an earlier attempt, and points kept whole."""
@@ -160,7 +167,7 @@ def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: 
         TileStore.create(work.store_path, scan.dtype, {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
     rule = ClassRule.of(config)
     plan, slices, whole, classes = bucket_scan(client, scan, scan.pieces(config.chunk_points), work, config, rule,
-                                               show_progress)
+                                               progress)
     for code in (*rule.keep, *rule.thin):
         if classes[code] == 0:
             note(f"class {code} has no points in the scan")
@@ -169,7 +176,7 @@ def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: 
     target = target_count(config.ratio, int(counts.sum()))
     weights, floors, fill = None, np.minimum(counts, 1), None  # no tile left empty
     if config.method in EVEN_SPACING or config.method in FILL_LOSSES:
-        surveys, sizes = survey_scan(client, plan, slices, work, config, target, show_progress)
+        surveys, sizes = survey_scan(client, plan, slices, work, config, target, progress)
         occupied = np.array([survey.occupied for survey in surveys])
         if config.method in EVEN_SPACING:  # tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
@@ -179,18 +186,21 @@ def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: 
     budgets = tile_budgets(counts, config.ratio, floors=floors, weights=weights)
     jobs = make_jobs(work, plan, slices, budgets, whole, config, fill)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]
-    map_tasks(client, simplify_tile, pending, plan, desc="simplify", show_progress=show_progress,
+    map_tasks(client, simplify_tile, pending, plan, desc="simplify", progress=progress,
               weight=lambda outcome: outcome.points)
     clock.lap("simplify tiles")
     results = {job.tile_id: job.result_path for job in jobs}
-    rejections = seam_rejections(plan, results, budgets, config.seam_tolerance)
+    with progress.phase("resolve seams", len(results), unit="tile") as phase:
+        rejections = seam_rejections(plan, results, budgets, config.seam_tolerance, on_tile=phase.update)
     written = []
     for path, ratio in zip(outputs, config.levels or (config.ratio,)):
         level = nested_budgets(budgets, target_count(ratio, int(counts.sum())))
         meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], ratio, config.method,
                           version("lidar-simplify"), settings)
-        parts = level_parts(plan, results, budgets, level, rejections, scan)
-        written.append(write_output(path, scan.header, int(level.sum() + whole.sum()), parts, meta))
+        with progress.phase(f"write {path.name}", len(results), unit="tile") as phase:
+            parts = counted(level_parts(plan, results, budgets, level, rejections, scan), phase,
+                            lambda part: len(part.records))
+            written.append(write_output(path, scan.header, int(level.sum() + whole.sum()), parts, meta))
     clock.lap("stitch and write")
     return written, len(jobs), len(jobs) - len(pending), int(whole.sum())
 
@@ -215,7 +225,7 @@ class PhaseClock:
 
 
 def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], work: WorkDir, config: RunConfig, rule: ClassRule,
-                show_progress: bool) -> tuple[TilePlan, list[list[Slice]], np.ndarray, np.ndarray]:
+                progress: Progress) -> tuple[TilePlan, list[list[Slice]], np.ndarray, np.ndarray]:
     """The one streamed pass: pieces stored sorted by grid cell (those an earlier attempt finished are
     reused); then the plan from the summed density, each tile's core+halo as row slices of the pieces,
     the (tiles,) core points `rule` keeps whole and the scan's (256,) points per class."""
@@ -227,7 +237,7 @@ def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], work: WorkDir, 
     finished = {piece.number: work.finished_piece(piece.number) for piece in pieces}
     pending = [piece for piece in pieces if finished[piece.number] is None]
     fresh = map_tasks(client, bucket_piece, pending, scan, grid, str(work.path), rule, desc="read and bucket",
-                      show_progress=show_progress, weight=lambda result: int(result.starts[-1]))
+                      progress=progress, weight=lambda result: int(result.starts[-1]))
     finished.update({piece.number: result for piece, result in zip(pending, fresh)})
     buckets = [finished[piece.number] for piece in pieces]
     cells, counts = summed_cells([b.cells for b in buckets], [np.diff(b.starts) for b in buckets])
@@ -257,7 +267,7 @@ class ScanFill:
 
 
 def survey_scan(client: Client, plan: TilePlan, slices: list[list[Slice]], work: WorkDir, config: RunConfig,
-                target: int, show_progress: bool) -> tuple[list[TileSurvey], np.ndarray]:
+                target: int, progress: Progress) -> tuple[list[TileSurvey], np.ndarray]:
     """Every tile's survey (those an earlier attempt finished are read back) and the voxel sizes (levels,)
     around the spacing `target` points give the scan, at which each counted its occupied voxels."""
     cell_area = plan.grid.cell ** 2
@@ -269,7 +279,7 @@ def survey_scan(client: Client, plan: TilePlan, slices: list[list[Slice]], work:
             for tile_id in range(len(plan.tiles))]
     pending = [job for job in jobs if not Path(job.survey_path).is_file()]
     fresh = dict(zip((job.tile_id for job in pending),
-                     map_tasks(client, survey_tile, pending, plan, desc="survey tiles", show_progress=show_progress)))
+                     map_tasks(client, survey_tile, pending, plan, desc="survey tiles", progress=progress)))
     surveys = [fresh[job.tile_id] if job.tile_id in fresh else load_survey(Path(job.survey_path)) for job in jobs]
     return surveys, np.array(sizes)
 

@@ -1,4 +1,4 @@
-"""`pipeline info`: what `pdal info --summary` and `lasinfo` users look for in a scan file: its header,
+"""`pipeline info` (and `pipeline.info`): what `pdal info --summary` and `lasinfo` users look for in a scan file: its header,
 CRS (EPSG, horizontal and vertical units), point density, file size, and class and return counts
 counted from the points (a header's per-return counts may lie)."""
 from __future__ import annotations
@@ -79,7 +79,7 @@ def format_summary(summary: dict[str, Any]) -> str:
         f"({summary['area']:,.1f} square {summary['horizontal_unit']})" if summary["density"] else "n/a (flat bounds)"
     kind = "COPC" if summary["copc"] else "LAZ" if summary["compressed"] else "uncompressed"
     lines = [
-        f"file:          {summary['file']} ({_size(summary['file_size'])})",
+        f"file:          {summary['file']} ({human_size(summary['file_size'])})",
         f"points:        {summary['points']:,}",
         f"LAS version:   {summary['las_version']}  point format {summary['point_format']}  ({kind})",
         f"written by:    {summary['generating_software'] or 'unknown'} on {summary['creation_date'] or 'unknown date'}",
@@ -102,11 +102,11 @@ def format_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _size(count: int) -> str:
-    """Bytes as a short human figure: 12.3 MB."""
-    value, unit = float(count), "B"
-    for larger in ("kB", "MB", "GB", "TB"):
+def human_size(count: int) -> str:
+    """Bytes as a short figure: 12.3 MB."""
+    value = float(count)
+    for unit in ("B", "kB", "MB", "GB"):
         if value < 1000:
-            break
-        value, unit = value / 1000, larger
-    return f"{count} B" if unit == "B" else f"{value:.1f} {unit}"
+            return f"{value:.3g} {unit}" if unit != "B" else f"{count} B"
+        value /= 1000
+    return f"{value:.3g} TB"

@@ -13,8 +13,8 @@ from click.testing import CliRunner
 
 import pipeline
 from pipeline.cli import cli
-from pipeline.compare import RunOptions, compare
-from pipeline.evaluate import METRIC_COLUMNS
+from pipeline.comparison import RunOptions, compare
+from pipeline.scoring import METRIC_COLUMNS
 from pipeline.simulate import write_street_scan
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
