@@ -40,7 +40,7 @@ class OneLineErrors(click.Group):
 
 def note_worker_cap(workers: int, scheduler: str | None) -> None:
     """One line on stderr when a local cluster gets fewer workers than asked for (no more than the cores)."""
-    from pipeline.execute import local_workers
+    from pipeline.threads import local_workers
 
     if scheduler is None and local_workers(workers) < workers:
         click.echo(f"pipeline: note: --workers {workers} capped at {local_workers(workers)}, the cores this "

@@ -11,10 +11,9 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
-from dask.distributed import Client
 
 from model.geometry import point_features
 from model.registry import METHODS
@@ -29,6 +28,9 @@ from pipeline.points import Cells, covering_grid, load_xyz
 from pipeline.report import density_png_path, render_report
 from pipeline.runner import run_scan
 
+if TYPE_CHECKING:
+    from dask.distributed import Client
+
 REGION_POINTS = 20_000  # reference points in the pictured cell, on average over the grid: a few buildings' worth
 
 
@@ -41,7 +43,7 @@ class RunOptions:
     progress: Progress = field(default_factory=Progress)  # a step per run (method and ratio)
 
 
-Producer = Callable[[Path, Path, float, RunOptions, Client], None]
+Producer = Callable[[Path, Path, float, RunOptions, "Client"], None]
 
 
 def through_pipeline(method: str) -> Producer:

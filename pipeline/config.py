@@ -32,6 +32,7 @@ class RunConfig:
     memory_limit: str = "2GB"
     cache_memory: str = "32MB"  # each process's cache of stored row chunks (tiles re-read their neighbours')
     chunk_points: int = 500_000  # points per bucketing piece: one piece per worker in memory at a time
+    in_process_points: int = 250_000  # scans up to this size run in this process: a cluster's start costs more
     seed: int = 0
     allow_geographic: bool = False  # run on coordinates in degrees (tile sizes and distances become degrees)
     levels: tuple[float, ...] = ()  # nested outputs at these ratios from one simplification (the first is `ratio`)
@@ -53,6 +54,8 @@ class RunConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0) or (name == "tile_size" and value <= 0):
                 raise PipelineError(f"--{name.replace('_', '-')} must be a positive number of metres, got {value!r}")
+        if int(self.in_process_points) < 0:
+            raise PipelineError(f"in-process-points must be 0 (never) or more, got {self.in_process_points!r}")
         for name in ("max_tile_points", "workers", "chunk_points"):
             if int(getattr(self, name)) < 1:
                 raise PipelineError(f"{name.replace('_', '-')} must be at least 1, got {getattr(self, name)!r}")

@@ -9,16 +9,18 @@ from __future__ import annotations
 import copy
 import tempfile
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import laspy
 import numpy as np
 import zarr
-from dask.distributed import Client
 
 from pipeline.config import build_config
 from pipeline.errors import PipelineError
 from pipeline.runner import run_scan
+
+if TYPE_CHECKING:
+    from dask.distributed import Client
 
 INDEX_DIMENSION = "simplify_source_index"
 ARRAY_SCALE = 1e-4  # grid step of an (n, 3) array written to LAS: 0.1 mm, finer than any scanner

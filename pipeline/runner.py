@@ -6,10 +6,9 @@ from contextlib import nullcontext
 from dataclasses import dataclass
 from importlib.metadata import version
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
-from dask.distributed import Client
 
 from model.registry import EVEN_SPACING, FILL_LOSSES
 from model.stratified import COVER_SPACINGS
@@ -34,6 +33,9 @@ from tiling.budgets import (coverage_weights, even_spacing, nested_budgets, pool
 from tiling.bucket import cell_boxes, row_ranges
 from tiling.plan import DensityGrid, TilePlan, plan_tiles, summed_cells
 from tiling.store import Slice, TileStore
+
+if TYPE_CHECKING:
+    from dask.distributed import Client
 
 RESERVE_SHARE = 0.05               # extra picks per tile, in priority order, for the seam top-up
 RESERVE_MIN = 16
@@ -85,7 +87,9 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
 
     Lengths in `config` are metres, converted to the scan's horizontal unit (its CRS's: foot, US survey
     foot, ...); `note` hears that once, or that metres were assumed for lack of a CRS.
-    Runs on `client` if given, else on the cluster at `scheduler`, else on a fresh local cluster.
+    Runs on `client` if given, else on the cluster at `scheduler`, else in this process for a scan of at
+    most `in_process_points` points (the same tasks in line: starting a cluster costs more than it saves),
+    else on a fresh local cluster.
     Finished pieces and tiles are kept in a work folder until the output is in place, so the same
     command re-run after a crash or a kill resumes; any other failure names that folder.
     """
@@ -116,7 +120,8 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     work = WorkDir.for_run(output, Path(scratch) if scratch else None, scan.paths, config)
     written = None
     try:
-        with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler) as active:
+        here = scan.point_count <= config.in_process_points  # tasks in line: no cluster to start (same output)
+        with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here) as active:
             written, tiles, resumed, kept_whole = simplify_scan(scan, outputs, config, settings, work, active, clock,
                                                                 progress or Progress(), note or (lambda line: None))
     except PipelineError as exc:
@@ -158,7 +163,7 @@ def interrupted(exc: KeyboardInterrupt, work: WorkDir, written: Path | None) -> 
 
 
 def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: dict[str, Any], work: WorkDir,
-                  client: Client, clock: "PhaseClock", progress: Progress,
+                  client: Client | None, clock: "PhaseClock", progress: Progress,
                   note: Callable[[str], None]) -> tuple[list[int], int, int, int]:
     """Bucket, plan, simplify every tile on the cluster, stitch and write each level; return points written
     per output, tiles, tiles found finished by an earlier attempt, and points kept whole."""
@@ -224,7 +229,7 @@ class PhaseClock:
         self._last = now
 
 
-def bucket_scan(client: Client, scan: Scan, pieces: list[Piece], work: WorkDir, config: RunConfig, rule: ClassRule,
+def bucket_scan(client: Client | None, scan: Scan, pieces: list[Piece], work: WorkDir, config: RunConfig, rule: ClassRule,
                 progress: Progress) -> tuple[TilePlan, list[list[Slice]], np.ndarray, np.ndarray]:
     """The one streamed pass: pieces stored sorted by grid cell (those an earlier attempt finished are
     reused); then the plan from the summed density, each tile's core+halo as row slices of the pieces,
@@ -266,7 +271,7 @@ class ScanFill:
     cover_radius: float
 
 
-def survey_scan(client: Client, plan: TilePlan, slices: list[list[Slice]], work: WorkDir, config: RunConfig,
+def survey_scan(client: Client | None, plan: TilePlan, slices: list[list[Slice]], work: WorkDir, config: RunConfig,
                 target: int, progress: Progress) -> tuple[list[TileSurvey], np.ndarray]:
     """Every tile's survey (those an earlier attempt finished are read back) and the voxel sizes (levels,)
     around the spacing `target` points give the scan, at which each counted its occupied voxels."""

@@ -16,6 +16,7 @@ import pytest
 from tests.conftest import simulated_street
 
 SETTINGS = ["--ratio", "0.1", "--method", "learned", "--tile-size", "8", "--workers", "2", "--seed", "5"]
+ON_A_CLUSTER = Path(__file__).with_name("on_a_cluster.toml")  # a scan this small would otherwise run in process
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +32,8 @@ def clean_output(scan: Path, tmp_path_factory: pytest.TempPathFactory) -> np.nda
 
 
 def command(scan: Path, out: Path) -> list[str]:
-    return [sys.executable, "-m", "pipeline.cli", "run", str(scan), "-o", str(out), *SETTINGS]
+    return [sys.executable, "-m", "pipeline.cli", "run", str(scan), "-o", str(out), *SETTINGS, "--config",
+            str(ON_A_CLUSTER)]
 
 
 def finished_tiles(out: Path) -> int:

@@ -17,6 +17,7 @@ import pytest
 import trimesh
 
 from tests.test_cli import assert_one_line_error, cli, small_las
+from tests.test_faults import ON_A_CLUSTER
 
 FAST = ("-m", "fps", "-w", "1", "-q")
 
@@ -325,7 +326,8 @@ def test_workers_dying_of_memory_end_in_one_line_that_names_the_limit(tmp_path, 
     """256 MiB passes the floor, but a worker that loads torch for the default method holds ~270 MiB:
     Dask kills it at 95 % of its limit, again on each retry; the run ends instead of restarting it for ever,
     and the rerun with more memory resumes (the limit is not part of the work folder's key)."""
-    args = ("run", str(scan), "-r", "0.1", "-o", str(tmp_path / "out.laz"), "-w", "1", "-q")
+    args = ("run", str(scan), "-r", "0.1", "-o", str(tmp_path / "out.laz"), "-w", "1", "-q", "--config",
+            str(ON_A_CLUSTER))
     result = cli(*args, "--memory-limit", "256MiB")
     assert_one_line_error(result, "died again and again", "--memory-limit")
     assert not (tmp_path / "out.laz").exists()

@@ -32,11 +32,14 @@ def live_processes(group: int) -> list[str]:
     return [line for line in listing.splitlines() if line.strip() and not line.strip().startswith("Z")]
 
 
-@pytest.mark.parametrize("stop, code", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
-def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, stop, code):
+@pytest.mark.parametrize("stop, code, where", [(signal.SIGINT, 130, "cluster"), (signal.SIGTERM, 143, "cluster"),
+                                              (signal.SIGINT, 130, "in process")])
+def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, stop, code, where):
     out = tmp_path / "out.laz"
+    (tmp_path / "here.toml").write_text("[run]\nin_process_points = 1000000\n")  # the 300k patch in this process
+    place = ["--config", str(tmp_path / "here.toml")] if where == "in process" else []
     command = [sys.executable, "-m", "pipeline.cli", "run", str(patch), "-r", "0.1", "-o", str(out), "--tile-size", "4",
-               "-w", "2", "-q"]
+               "-w", "2", *place, "-q"]
     run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     while not list(tmp_path.glob(".out.laz.work-*/tile-*.npz")):
         assert run.poll() is None, run.stderr.read()  # still running when the first tile is done

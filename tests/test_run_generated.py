@@ -92,13 +92,17 @@ def test_fps_budgets_follow_area_not_point_count(tmp_path):
     assert left + right == 2_200 and 0.75 < left / right < 1.33
 
 
-def test_one_and_two_workers_give_identical_bytes(tmp_path, dense_patch):
+@pytest.mark.parametrize("method", ["fps", "learned"])
+def test_one_and_two_workers_and_this_process_give_identical_bytes(tmp_path, dense_patch, method):
+    """The patch (120k points) runs in this process by default; on 1 or 2 Dask workers it must come out the
+    same, byte for byte (the in-process run holds BLAS and torch to one thread, as a worker does)."""
     outputs = []
-    for workers in (1, 2):
-        out = tmp_path / f"w{workers}.laz"
-        pipeline.run(dense_patch, out, ratio=0.1, method="fps", tile_size=4.0, workers=workers, seed=7)
+    for name, settings in (("here", {}), ("w1", dict(workers=1, in_process_points=0)),
+                           ("w2", dict(workers=2, in_process_points=0))):
+        out = tmp_path / f"{name}.laz"
+        pipeline.run(dense_patch, out, ratio=0.1, method=method, tile_size=4.0, seed=7, **settings)
         outputs.append(out.read_bytes())
-    assert outputs[0] == outputs[1]
+    assert outputs[0] == outputs[1] == outputs[2]
 
 
 def test_seed_changes_random_output(tmp_path, dense_patch):

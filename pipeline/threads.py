@@ -1,0 +1,46 @@
+"""Threads and cores: how many workers this machine can run, and running tasks in this process with one
+thread each for BLAS, OpenMP and torch, as a Dask worker does."""
+from __future__ import annotations
+
+import os
+import sys
+from contextlib import contextmanager
+from typing import Iterator
+
+from threadpoolctl import threadpool_limits
+
+ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity, which containers and Slurm narrow)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def local_workers(requested: int) -> int:
+    """Worker processes for a local cluster: as requested, but no more than the cores (more only contend
+    for them and multiply memory; `--workers 1000` would start a thousand processes)."""
+    return max(1, min(requested, available_cores()))
+
+
+@contextmanager
+def in_process() -> Iterator[None]:
+    """Run tasks in this process, one at a time, with BLAS, OpenMP and torch held to one thread as in a
+    worker, so the output equals a cluster run's byte for byte; threads are given back afterwards."""
+    saved = {name: os.environ.get(name) for name in ONE_THREAD}
+    os.environ.update(ONE_THREAD)  # read by torch if a task imports it for the first time
+    torch = sys.modules.get("torch")
+    threads = torch.get_num_threads() if torch is not None else available_cores()
+    if torch is not None:
+        torch.set_num_threads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield None
+    finally:
+        for name, value in saved.items():
+            if value is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = value
+        if "torch" in sys.modules:
+            sys.modules["torch"].set_num_threads(threads)
