@@ -59,3 +59,8 @@ def test_the_callers_client_is_reused(tmp_path, street_scan, client):
     assert summary["points"] == target_count(0.05, 60_000) and summary["provenance"]["method"] == "random"
     reference, scores = pipeline.evaluate(street_scan, [tmp_path / "a.laz"], sample=0)
     assert reference.unit.name == "metre" and scores[0].points == summary["points"]
+
+
+def test_in_process_points_must_not_be_negative():
+    with pytest.raises(pipeline.PipelineError, match="in-process-points"):
+        pipeline.RunConfig(in_process_points=-1).validated()
