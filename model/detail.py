@@ -11,19 +11,18 @@ prediction sets the stratified fill's keep weights 1 + loss / mean loss (model.s
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-import torch
-from torch import nn
 
-from model.checkpoint import load_trained
 from model.geometry import bandwidth, curvature, knn, local_frames, mean_curvature, roughness
 from model.selection import FillLoss, Selection, Tile
 from model.stratified import curvature_loss, stratified_selection
 
-WEIGHTS = Path(__file__).resolve().parent / "weights" / "detail.pt"
+WEIGHTS = Path(__file__).resolve().parent / "weights" / "detail.npz"  # exported from detail.pt, the training record
+SOFTPLUS_LINEAR = 20.0  # torch's softplus returns its input above this
 DESCRIPTORS = 12
 HIDDEN = 32
 NEIGHBOURS = 16
@@ -64,38 +63,49 @@ def relative(loss: np.ndarray, cap: float = 20.0) -> np.ndarray:
     return np.minimum(loss / max(float(loss.mean()), 1e-12), cap) if len(loss) else loss
 
 
-class DetailNet(nn.Module):
-    """Descriptors (standardised by the training set's mean and deviation) -> predicted relative loss >= 0."""
+@dataclass(frozen=True)
+class DetailWeights:
+    """The trained predictor as numpy arrays (what model/detail_net.py's network holds): descriptor shift and
+    spread (12,), and three dense layers (out, in) with biases, ReLU between, softplus last."""
 
-    def __init__(self) -> None:
-        super().__init__()
-        self.register_buffer("shift", torch.zeros(DESCRIPTORS))
-        self.register_buffer("spread", torch.ones(DESCRIPTORS))
-        self.layers = nn.Sequential(nn.Linear(DESCRIPTORS, HIDDEN), nn.ReLU(), nn.Linear(HIDDEN, HIDDEN), nn.ReLU(),
-                                    nn.Linear(HIDDEN, 1), nn.Softplus())
+    shift: np.ndarray
+    spread: np.ndarray
+    layers: tuple[tuple[np.ndarray, np.ndarray], ...]
 
-    def forward(self, features: torch.Tensor) -> torch.Tensor:
-        return self.layers((features - self.shift) / self.spread).squeeze(-1)
+    def predict(self, features: np.ndarray) -> np.ndarray:
+        """(n,) float32 predicted relative loss >= 0 of (n, 12) float32 descriptors, as the torch network
+        computes it (float32 throughout; softplus as torch's, linear above 20)."""
+        x = (features - self.shift) / self.spread
+        for number, (weight, bias) in enumerate(self.layers):
+            x = x @ weight.T + bias
+            if number < len(self.layers) - 1:
+                x = np.maximum(x, 0)
+        x = x[:, 0]
+        return np.where(x > SOFTPLUS_LINEAR, x, np.log1p(np.exp(np.minimum(x, SOFTPLUS_LINEAR)))).astype(np.float32)
 
 
 @lru_cache(maxsize=2)
-def load_detail_net(path: Path = WEIGHTS) -> DetailNet:
-    """The trained predictor in inference mode."""
-    return load_trained(DetailNet(), path, "pipeline train-detail")
+def load_detail_weights(path: Path = WEIGHTS) -> DetailWeights:
+    """The shipped predictor (an .npz exported by `pipeline train-detail` beside its .pt): no torch needed,
+    so workers of the default method never import it (1.6 s and about 180 MB each)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no trained weights (train them with `pipeline train-detail`)")
+    with np.load(path, allow_pickle=False) as saved:
+        count = sum(1 for name in saved.files if name.startswith("weight_"))
+        layers = tuple((saved[f"weight_{i}"], saved[f"bias_{i}"]) for i in range(count))
+        return DetailWeights(saved["shift"], saved["spread"], layers)
 
 
-@torch.no_grad()
 def predicted_loss(tile: Tile, budget: int, path: Path = WEIGHTS) -> np.ndarray:
     """(n,) expected curvature loss of each tile point, over the mean, for an even thinning to `budget`."""
     return predicted_fill_loss(tile, budget, path).relative
 
 
-@torch.no_grad()
 def predicted_fill_loss(tile: Tile, budget: int, path: Path = WEIGHTS) -> FillLoss:
     """The expected loss over its core mean, and that mean in K units (the measured mean times the
     prediction's core mean, since the network predicts relative to the measured mean)."""
     features, measured_level = described(tile, budget)
-    predicted = load_detail_net(path)(torch.from_numpy(features)).numpy().astype(np.float64)
+    predicted = load_detail_weights(path).predict(features).astype(np.float64)
     core_mean = float(predicted[tile.core].mean()) if tile.core.any() else 0.0
     if core_mean <= 0:
         return FillLoss(np.zeros_like(predicted), 0.0)

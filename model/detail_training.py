@@ -19,7 +19,8 @@ import numpy as np
 import torch
 import trimesh
 
-from model.detail import DetailNet, descriptors, relative
+from model.detail import descriptors, relative
+from model.detail_net import DetailNet, export_weights
 from model.meshes import list_meshes, load_mesh, mesh_name, stratified_split
 from model.selection import Tile, kept_count
 from model.stratified import curvature_loss
@@ -103,7 +104,8 @@ def make_dataset(paths: list[Path], settings: DetailSettings, rng: np.random.Gen
 
 
 def train_detail(data: Path, out: Path, settings: DetailSettings = DetailSettings(), log=print) -> dict:
-    """Train on the training split of the meshes in `data`, write weights and record to `out`; return the record."""
+    """Train on the training split of the meshes in `data`, write weights and record to `out` (and the weights as
+    numpy arrays beside it, `out` with suffix .npz); return the record."""
     started = time.perf_counter()
     torch.manual_seed(settings.seed)
     rng = np.random.default_rng(settings.seed)
@@ -140,6 +142,7 @@ def train_detail(data: Path, out: Path, settings: DetailSettings = DetailSetting
               "seconds": time.perf_counter() - started}
     out.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"state_dict": net.state_dict(), "record": record}, out)
+    export_weights(net, out.with_suffix(".npz"))  # what the default method loads: no torch in its workers
     return record
 
 

@@ -8,14 +8,14 @@ from model.stratified import LossOf, measured_detail_simplify, measured_loss, no
 
 def learned_simplify(tile: Tile, budget: int) -> Selection:
     """The default: the stratified fill weighted by the curvature loss the TOSCA-trained predictor expects
-    (model/detail.py); torch is imported on first use, so other methods' workers never load it."""
+    (model/detail.py), run in numpy: no torch in its workers."""
     from model.detail import learned_detail_simplify
 
     return learned_detail_simplify(tile, budget)
 
 
 def learned_loss(tile: Tile, budget: int) -> FillLoss:
-    """The default's fill weights: the predicted curvature loss (model/detail.py), torch imported on first use."""
+    """The default's fill weights: the predicted curvature loss (model/detail.py)."""
     from model.detail import predicted_fill_loss
 
     return predicted_fill_loss(tile, budget)

@@ -18,7 +18,7 @@ from pipeline.output_meta import OutputMeta
 SOFTWARE = "lidar-simplify"
 PROVENANCE_USER_ID = "lidar-simplify"  # 16 bytes at most in a VLR
 PROVENANCE_RECORD_ID = 1
-_WEIGHTS = {"learned": "detail.pt", "paper": "tosca.pt", "paper-refined": "tosca.pt"}
+_WEIGHTS = {"learned": "detail.npz", "paper": "tosca.pt", "paper-refined": "tosca.pt"}  # what each runs on
 
 
 def software_name() -> str:

@@ -6,7 +6,8 @@ import torch
 from scipy.spatial import cKDTree
 
 from model import Tile, get_simplifier
-from model.detail import WEIGHTS, descriptors, load_detail_net
+from model.detail import WEIGHTS, descriptors, load_detail_weights
+from model.detail_net import TRAINED, export_weights, load_detail_net
 from model.learned import WEIGHTS as PAPER_WEIGHTS
 
 
@@ -63,12 +64,39 @@ def test_descriptors_of_a_rotated_tile_agree_but_for_the_measured_thinning():
 
 
 def test_weights_ship_with_their_record_and_the_papers_split():
-    assert WEIGHTS.is_file() and WEIGHTS.stat().st_size < 200_000
-    record = torch.load(WEIGHTS, map_location="cpu", weights_only=False)["record"]
+    assert TRAINED.is_file() and TRAINED.stat().st_size < 200_000
+    record = torch.load(TRAINED, map_location="cpu", weights_only=False)["record"]
     paper = torch.load(PAPER_WEIGHTS, map_location="cpu", weights_only=False)["record"]
     assert record["train"] == paper["train"] and record["test"] == paper["test"]  # no test pose seen
     assert record["history"][-1]["test_correlation"] > 0.5
     assert not load_detail_net().training
+
+
+def test_the_shipped_numpy_weights_are_the_trained_network_and_predict_as_it_does(tmp_path):
+    """The default runs on detail.npz without torch: it must hold detail.pt's weights, and its float32 numpy
+    forward pass must agree with the torch network's (to float32 round-off: 1e-4 relative)."""
+    export_weights(load_detail_net(), tmp_path / "again.npz")
+    shipped, again = np.load(WEIGHTS), np.load(tmp_path / "again.npz")
+    assert sorted(shipped.files) == sorted(again.files)
+    for name in shipped.files:
+        np.testing.assert_array_equal(shipped[name], again[name], err_msg=name)
+    features = descriptors(edge_pole_plane(4)[0], 2_000)
+    with torch.no_grad():
+        expected = load_detail_net()(torch.from_numpy(features)).numpy()
+    np.testing.assert_allclose(load_detail_weights().predict(features), expected, rtol=1e-4, atol=1e-6)
+
+
+def test_the_default_method_runs_without_torch(tmp_path):
+    """Workers of `learned` (here: the run's own process, for a small scan) never import torch."""
+    import subprocess
+    import sys
+
+    tile_script = ("import sys, numpy as np; from model import Tile, get_simplifier; "
+                   "xyz = np.random.default_rng(0).normal(size=(3000, 3)); "
+                   "get_simplifier('learned')(Tile(xyz, np.ones(3000, bool), np.zeros(3), 0), 300); "
+                   "print('torch' in sys.modules)")
+    result = subprocess.run([sys.executable, "-c", tile_script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0 and result.stdout.strip() == "False", result.stderr
 
 
 def test_training_on_generated_meshes_writes_weights_that_predict(tmp_path):
@@ -93,5 +121,5 @@ def test_training_on_generated_meshes_writes_weights_that_predict(tmp_path):
     tile, _, _ = edge_pole_plane(4)
     from model.detail import predicted_loss
 
-    loss = predicted_loss(tile, 2_000, out)
+    loss = predicted_loss(tile, 2_000, out.with_suffix(".npz"))  # the numpy weights written beside the .pt
     assert loss.shape == (len(tile.xyz),) and np.isfinite(loss).all() and (loss >= 0).all()

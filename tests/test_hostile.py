@@ -323,11 +323,11 @@ def patched_bytes_in(data: bytearray, offset: int, value: int, size: int) -> byt
 
 
 def test_workers_dying_of_memory_end_in_one_line_that_names_the_limit(tmp_path, scan):
-    """256 MiB passes the floor, but a worker that loads torch for the default method holds ~270 MiB:
+    """256 MiB passes the floor, but a worker that loads torch for the paper's network holds ~270 MiB:
     Dask kills it at 95 % of its limit, again on each retry; the run ends instead of restarting it for ever,
     and the rerun with more memory resumes (the limit is not part of the work folder's key)."""
-    args = ("run", str(scan), "-r", "0.1", "-o", str(tmp_path / "out.laz"), "-w", "1", "-q", "--config",
-            str(ON_A_CLUSTER))
+    args = ("run", str(scan), "-r", "0.1", "-m", "paper", "-o", str(tmp_path / "out.laz"), "-w", "1", "-q",
+            "--config", str(ON_A_CLUSTER))
     result = cli(*args, "--memory-limit", "256MiB")
     assert_one_line_error(result, "died again and again", "--memory-limit")
     assert not (tmp_path / "out.laz").exists()

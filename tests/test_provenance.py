@@ -31,7 +31,7 @@ def test_outputs_carry_the_run_record(tmp_path):
     again = laspy.open(tmp_path / "b.laz").header
     assert sum(v.user_id == PROVENANCE_USER_ID for v in again.vlrs) == 1
     record = read_provenance(again)
-    assert record["method"] == "learned" and record["model_weights"].startswith("detail.pt:")
+    assert record["method"] == "learned" and record["model_weights"].startswith("detail.npz:")
 
     pipeline.run(tmp_path / "ft.las", tmp_path / "c.zarr", ratio=0.2, method="fps", workers=1)
     stored = zarr.open_group(str(tmp_path / "c.zarr"), mode="r").attrs["provenance"]
