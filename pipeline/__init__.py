@@ -66,7 +66,7 @@ def info(path: str | Path, count_points: bool = True) -> dict[str, Any]:
 def evaluate(reference: str | Path, candidates: Sequence[str | Path], sample: int = 200_000,
              seed: int = 0) -> tuple[Reference, list[Score]]:
     """`pipeline eval`: every quality metric of each candidate against the reference (on `sample`
-    reference points in whole grid cells; 0: every point); CD and Hausdorff in `Reference.unit`."""
+    reference points in whole grid cells; 0: every point); Hausdorff in `Reference.unit`, CD (mean squared distances) in its square."""
     from pipeline.scoring import evaluate as evaluate_files
 
     return evaluate_files(Path(reference), [Path(c) for c in candidates], sample, seed)

@@ -107,7 +107,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
                 raise PipelineError(f"{path}: {exc}") from None
     check_run(scan, config.allow_geographic, Path(scratch or output.parent),
               kept=int(target_count(config.ratio, scan.point_count) * (1 + RESERVE_SHARE)),
-              surveyed=config.method in FILL_LOSSES)
+              surveyed=config.method in FILL_LOSSES, progress=progress or Progress())
     unit = length_unit(scan.header)
     settings = output_settings(config)  # what the output records: lengths in metres, as given
     config = config.in_unit(unit.metres)

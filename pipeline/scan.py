@@ -4,7 +4,7 @@ from __future__ import annotations
 import copy
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 import laspy
 import numpy as np
@@ -142,7 +142,7 @@ class Scan:
         check_points(source.path, xyz, source.header)
         return Chunk(records, xyz)
 
-    def probe(self, count: int) -> None:
+    def probe(self, count: int, on_file: Callable[[], None] = lambda: None) -> None:
         """Decode the first `count` points of every file, so a corrupt one fails before any worker starts.
 
         A file whose header bounds miss even those points (bounds written unscaled, as in simple1_3.las)
@@ -151,6 +151,7 @@ class Scan:
         """
         first = 0
         for number, source in enumerate(self.sources):
+            on_file()
             if source.point_count and not bounds_encodable(source.header):
                 self._measure_bounds(source)
             elif source.point_count:

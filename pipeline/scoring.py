@@ -42,7 +42,7 @@ class Reference:
     xyz: np.ndarray
     features: PointFeatures
     scored: np.ndarray | None
-    unit: LengthUnit  # of CD and Hausdorff: the reference's horizontal unit
+    unit: LengthUnit  # the reference's horizontal unit: of Hausdorff, and squared of CD
 
     @property
     def evaluated_points(self) -> int:
@@ -142,7 +142,8 @@ def sample_note(reference: Reference) -> str:
     """One line saying what part of the reference the metrics cover."""
     share = "all points" if reference.cells is None else f"{len(reference.cells.chosen)} sampled grid cells"
     return (f"reference {reference.path}: {reference.points:,} points; evaluated on {reference.evaluated_points:,} "
-            f"({share}); CD and Hausdorff in {reference.unit.label}; lower is better for every metric")
+            f"({share}); Hausdorff in {reference.unit.label}, CD (squared distances) in square {reference.unit.name}; "
+            "lower is better for every metric")
 
 
 def format_scores(reference: Reference, scores: Sequence[Score]) -> str:

@@ -14,6 +14,7 @@ import numpy as np
 
 from pipeline.crs import crs_label, degrees_reason, same_crs
 from pipeline.errors import PipelineError
+from pipeline.progress import Progress
 from tiling.store import TAIL
 
 if TYPE_CHECKING:
@@ -191,7 +192,8 @@ def check_points(path: Path, xyz: np.ndarray, header: laspy.LasHeader) -> None:
             f"header first (e.g. lasinfo -repair_bb, or pdal translate IN OUT)")
 
 
-def check_run(scan: "Scan", allow_degrees: bool, scratch: Path, kept: int = 0, surveyed: bool = False) -> None:
+def check_run(scan: "Scan", allow_degrees: bool, scratch: Path, kept: int = 0, surveyed: bool = False,
+              progress: Progress = Progress()) -> None:
     """Before any worker starts: every input in one CRS, none in degrees (unless allowed), the first points of every file decode,
     and the scratch folder has room for the work folder: the bucketed scan (every record, uncompressed,
     with its index), the per-point survey of a stratified method and the tile results (`kept` points,
@@ -207,7 +209,8 @@ def check_run(scan: "Scan", allow_degrees: bool, scratch: Path, kept: int = 0, s
         reason = degrees_reason(source.header)
         if reason and not allow_degrees:
             raise PipelineError(f"{source.path}: {reason}; {REPROJECT_ADVICE}")
-    scan.probe(PROBE_POINTS)
+    with progress.phase("validate", len(scan.sources), unit="file") as phase:
+        scan.probe(PROBE_POINTS, on_file=phase.update)
     if not scratch.is_dir():
         raise PipelineError(f"{scratch}: scratch folder does not exist")
     need = SCRATCH_SLACK * (scan.point_count * (scan.dtype.itemsize + TAIL + (SURVEY_BYTES if surveyed else 0))

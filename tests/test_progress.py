@@ -22,7 +22,7 @@ def test_a_run_off_a_terminal_prints_progress_lines(tmp_path, street_scan):
     result = pipeline_cli("run", str(street_scan), "-r", "0.1", "-m", "fps", "-w", "1", "-o", str(tmp_path / "o.laz"))
     assert result.returncode == 0, result.stderr
     lines = [line for line in result.stderr.splitlines() if line.startswith("pipeline: ") and " of " in line]
-    for phase in ("read and bucket", "survey tiles", "simplify", "resolve seams", "write o.laz"):
+    for phase in ("validate", "read and bucket", "survey tiles", "simplify", "resolve seams", "write o.laz"):
         assert any(line.startswith(f"pipeline: {phase}: ") for line in lines), (phase, result.stderr)
     assert any("points/s" in line for line in lines) and any("done in" in line for line in lines)
     assert "\r" not in result.stderr  # no bar redraws in a log file

@@ -74,6 +74,6 @@ def test_info_and_eval_say_the_unit_and_eval_refuses_mixed_units(tmp_path):
     assert info["epsg"] == 2227 and info["horizontal_unit"] == "US survey foot" and not info["horizontal_unit_assumed"]
     assert info["density"] == pytest.approx(5_000 / info["area"])
     scored = runner.invoke(cli, ["eval", str(tmp_path / "ft.las"), str(tmp_path / "ft.las")])
-    assert scored.exit_code == 0 and "CD and Hausdorff in US survey foot" in scored.stdout
+    assert scored.exit_code == 0 and "Hausdorff in US survey foot, CD (squared distances) in square US survey foot" in scored.stdout
     mixed = runner.invoke(cli, ["eval", str(tmp_path / "ft.las"), str(tmp_path / "m.las")])
     assert mixed.exit_code == 2 and "in metre" in mixed.stderr and "in US survey foot" in mixed.stderr
