@@ -46,6 +46,24 @@ def test_simplify_an_array_in_a_progressive_order(client):
         pipeline.simplify(xyz[:, :2], 0.2, client=client)
 
 
+def test_simplify_an_array_keeps_what_the_file_run_keeps_on_the_same_points(tmp_path, client):
+    """An array on the 0.1 mm grid that simplify quantises to, and the same points as a LAS file: the same picks."""
+    rng = np.random.default_rng(5)
+    steps = np.column_stack([rng.integers(0, 600_000, 40_000), rng.integers(0, 300_000, 40_000),
+                             rng.integers(0, 2_000, 40_000)])
+    xyz = steps * 1e-4 + [500_000.0, 4_000_000.0, 10.0]
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.offsets, header.scales = xyz.min(axis=0), [1e-4] * 3
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    las.write(tmp_path / "same.las")
+    settings = dict(method="fps", tile_size=20.0, client=client)
+    kept = pipeline.simplify(xyz, 0.1, **settings)
+    pipeline.run(tmp_path / "same.las", tmp_path / "out.las", ratio=0.1, **settings)
+    from_file = laspy.read(tmp_path / "out.las")
+    assert set(map(tuple, np.round(xyz[kept], 4))) == set(map(tuple, np.round(from_file.xyz, 4)))
+
+
 def test_progressive_order_takes_each_tile_in_proportion():
     order = progressive_order(np.array([4, 2]))
     assert order.tolist() == [0, 4, 1, 2, 5, 3]
