@@ -19,9 +19,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
-import subprocess
 import sys
 import tempfile
 from dataclasses import asdict, dataclass
@@ -97,38 +95,16 @@ def untiled_fps(xyz: np.ndarray, count: int) -> np.ndarray:
 def cloudcompare_spatial(xyz: np.ndarray, count: int, work: Path) -> np.ndarray:
     """Indices of CloudCompare's `-SS SPATIAL d` result, d searched so it keeps at least `count`, surplus
     dropped at random (seeded). CloudCompare reads PLY here; its points are matched back by position."""
-    from plyfile import PlyData, PlyElement
+    from plyfile import PlyData
 
-    centre = xyz.mean(axis=0)
-    local = (xyz - centre).astype(np.float32)
-    vertex = np.empty(len(local), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
-    vertex["x"], vertex["y"], vertex["z"] = local.T
+    from cloudcompare_peer import run_once, spatial_distance, write_ply
+
     source, result = work / "cc_in.ply", work / "cc_out.ply"
-    PlyData([PlyElement.describe(vertex, "vertex")], text=False).write(str(source))
-    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
-
-    def run(distance: float) -> np.ndarray:
-        result.unlink(missing_ok=True)
-        subprocess.run(["CloudCompare", "-SILENT", "-AUTO_SAVE", "OFF", "-O", str(source), "-SS", "SPATIAL",
-                        f"{distance:.6g}", "-C_EXPORT_FMT", "PLY", "-SAVE_CLOUDS", "FILE", str(result)],
-                       check=True, env=env, capture_output=True, timeout=600)
-        kept = PlyData.read(str(result))["vertex"]
-        return np.column_stack([kept["x"], kept["y"], kept["z"]]).astype(np.float64)
-
-    spacing = float(np.sqrt(np.prod(np.ptp(local[:, :2], axis=0)) / count))
-    low, high = spacing * 0.05, spacing * 4  # too close (keeps more), too far (keeps fewer)
-    best = run(low)
-    for _ in range(12):
-        middle = float(np.sqrt(low * high))
-        kept = run(middle)
-        if len(kept) >= count:
-            low, best = middle, kept
-        else:
-            high = middle
-        if count <= len(best) <= count * 1.01:
-            break
-    index = nearest(local.astype(np.float64), best).index
-    index = np.unique(index)
+    write_ply(xyz, source)
+    run_once(source, spatial_distance(source, xyz, count * 1.005, result, tolerance=0.005), result)
+    kept = PlyData.read(str(result))["vertex"]
+    kept_xyz = np.column_stack([kept["x"], kept["y"], kept["z"]]).astype(np.float64)
+    index = np.unique(nearest(xyz - xyz.mean(axis=0), kept_xyz).index)
     return np.random.default_rng(0).permutation(index)[:count]
 
 

@@ -1,12 +1,16 @@
-"""Throughput and peak memory of `pipeline run` per method and worker count, beside Open3D.
+"""Where the time goes: `pipeline run` per method, worker count and phase, beside CloudCompare and Open3D.
 
-    python bench/throughput.py [--data DIR] [--ratio 0.1] [--repeat 1]
+    python bench/throughput.py [--inputs bcts,lone-star,street,autzen] [--data DIR] [--ratio 0.1]
+                               [--repeat 1] [--methods learned,fps,voxel,random] [--skip-open3d]
 
-Runs each method (learned, stratified, fps, voxel, random) with 1 and 2 workers on bcts_1..4 (2.83 M points, one scan in four files), then
-Open3D's voxel_down_sample on the same points and farthest_point_down_sample on bcts_1 alone (Open3D's
-FPS is O(N*M): on all 2.83 M points it would run for about 20 minutes here). Prints a Markdown table:
-end-to-end wall time of the whole command (imports, reading, writing included), the pipeline's own
-time, points/s on each, and the peak RSS summed over the process tree (Dask workers included).
+Inputs: `bcts` (bcts_1..4 together, 2.83 M airborne points), `lone-star` (519k terrestrial points, run with
+--allow-geographic: its CRS label says WGS 84), `street` (a 1M-point simulated mobile street, written once
+into a temporary folder), `autzen` (autzen_trim.laz, 110k points). Per input, one Markdown table:
+each method with 1 and 2 workers (the phases `-v` prints as columns), CloudCompare's `-SS SPATIAL d` on
+the points written once as PLY (d searched untimed, and cached, to keep ratio x N points), Open3D's
+voxel_down_sample and farthest_point_down_sample (O(N*M): only on up to 600k points), then one row per
+target with "met" or "missed". Wall time is the whole command (imports, reading, writing), best of
+--repeat (slowest in brackets); RSS is the peak summed over the process tree (Dask workers included).
 """
 from __future__ import annotations
 
@@ -15,14 +19,81 @@ import json
 import re
 import sys
 import tempfile
+from dataclasses import dataclass
+from importlib.util import find_spec
 from pathlib import Path
+from typing import Callable
 
+import laspy
+import numpy as np
+
+import cloudcompare_peer
 from proctree import Measured, measure
 
 HERE = Path(__file__).resolve().parent
 DEFAULT_DATA = HERE.parents[1] / "shared" / "data" / "lidar"
-SUMMARY = re.compile(r"of ([\d,]+) points \((\d+) tiles, ([\d.]+) s")
-METHODS = ("learned", "stratified", "fps", "voxel", "random")
+INPUTS = ("bcts", "lone-star", "street", "autzen")
+METHODS = ("learned", "fps", "voxel", "random")
+STREET_POINTS, STREET_SEED = 1_000_000, 3
+OPEN3D_FPS_MAX = 600_000  # Open3D's FPS on bcts_1's 532k points takes about 45 s here; on 2.83M, 20 minutes
+DISTANCE_CACHE = Path(tempfile.gettempdir()) / "lidar-simplify-bench" / "cloudcompare-distances.json"
+SUMMARY = re.compile(r"([\d,]+) of ([\d,]+) points \(")
+PHASES = ("start cluster", "read and bucket", "simplify tiles", "stitch and write")
+PHASE = re.compile(rf"({'|'.join(PHASES)}): ([\d.]+) s")
+COLUMNS = ("what", "workers", "points", "kept", "wall s", "points/s (wall)", *(f"{p} s" for p in PHASES),
+           "rest s", "peak RSS MiB", "target")
+
+
+@dataclass(frozen=True)
+class Scan:
+    """One input: its files and the options `pipeline run` needs for it."""
+
+    name: str
+    paths: tuple[Path, ...]
+    options: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class Timed:
+    """One table row: the best of the runs of one command (`phases`: ours from `-v`, or a library call's own
+    time in the simplify column; the rest of the wall time is imports, validation, loading and shutdown)."""
+
+    what: str
+    workers: str
+    points: int
+    kept: int
+    seconds: float
+    slowest: float
+    rss_bytes: int
+    phases: tuple[float | None, ...] = (None,) * len(PHASES)
+
+    def row(self) -> str:
+        timed = [p for p in self.phases if p is not None]
+        rest = f"{self.seconds - sum(timed):.2f}" if timed else ""
+        return cells(self.what, self.workers, f"{self.points:,}", f"{self.kept:,}",
+                     f"{self.seconds:.2f} ({self.slowest:.2f})", f"{self.points / self.seconds:,.0f}",
+                     *("" if p is None else f"{p:.2f}" for p in self.phases), rest, f"{self.rss_bytes / 2**20:,.0f}", "")
+
+
+@dataclass(frozen=True)
+class Target:
+    """A ratio the issue sets a bound on: met when `value` is at most `limit` (or at least, if `floor`)."""
+
+    what: str
+    value: float
+    limit: float
+    floor: bool = False
+
+    def row(self) -> str:
+        met = self.value >= self.limit if self.floor else self.value <= self.limit
+        value, limit = (f"{x:,.0f}" if x >= 1000 else f"{x:.2f}" for x in (self.value, self.limit))
+        return cells(self.what, *[""] * (len(COLUMNS) - 2),
+                     f"{value} ({'≥' if self.floor else '≤'} {limit}): {'met' if met else 'missed'}")
+
+
+def cells(*values: str) -> str:
+    """One Markdown table row."""
+    return "| " + " | ".join(values) + " |"
 
 
 def best(command: list[str], repeat: int) -> tuple[Measured, float]:
@@ -35,54 +106,146 @@ def best(command: list[str], repeat: int) -> tuple[Measured, float]:
     return min(runs, key=lambda run: run.seconds), max(run.seconds for run in runs)
 
 
-def pipeline_row(inputs: list[Path], method: str, workers: int, ratio: float, out_dir: Path, repeat: int) -> str:
-    output = out_dir / f"{method}-{workers}.laz"
-    command = [sys.executable, "-m", "pipeline.cli", "run", *map(str, inputs), "--ratio", str(ratio), "-o",
-               str(output), "--method", method, "--workers", str(workers), "--overwrite"]
+def scan_of(name: str, data: Path, work: Path) -> Scan | None:
+    """The input called `name`, the street written into `work` first; None (with the reason printed) if missing."""
+    if name == "street":
+        from pipeline.simulate import write_street_scan
+
+        path = work / "street.laz"
+        write_street_scan(path, STREET_POINTS, seed=STREET_SEED)
+        return Scan(name, (path,))
+    files = {"bcts": [f"bcts_{i}.laz" for i in range(1, 5)], "lone-star": ["lone-star.laz"],
+             "autzen": ["autzen_trim.laz"]}[name]
+    paths = tuple(data / file for file in files)
+    missing = [path for path in paths if not path.exists()]
+    if missing:
+        print(f"\nskipped {name}: {missing[0]} is missing (pass --data)")
+        return None
+    return Scan(name, paths, ("--allow-geographic",) if name == "lone-star" else ())
+
+
+def pipeline_row(scan: Scan, method: str, workers: int, ratio: float, out_dir: Path, repeat: int) -> Timed:
+    """`pipeline run -v` on the scan, with the phases it prints."""
+    command = [sys.executable, "-m", "pipeline.cli", "run", *map(str, scan.paths), *scan.options, "--ratio",
+               str(ratio), "-o", str(out_dir / f"{method}-{workers}.laz"), "--method", method, "--workers",
+               str(workers), "--overwrite", "-v"]
     run, slowest = best(command, repeat)
-    points, tiles, own_seconds = SUMMARY.search(run.stdout).groups()
-    n = int(points.replace(",", ""))
-    return (f"| pipeline run --method {method} | {workers} | {n:,} | {run.seconds:.2f} ({slowest:.2f}) "
-            f"| {n / run.seconds:,.0f} "
-            f"| {float(own_seconds):.2f} | {n / float(own_seconds):,.0f} | {run.peak_rss_bytes / 2**20:,.0f} |")
+    kept, points = (int(n.replace(",", "")) for n in SUMMARY.search(run.stdout).groups())
+    phases = dict(PHASE.findall(run.stdout))
+    return Timed(f"pipeline run -m {method}", str(workers), points, kept, run.seconds, slowest, run.peak_rss_bytes,
+                 tuple(float(phases[p]) if p in phases else None for p in PHASES))
 
 
-def open3d_row(operation: str, inputs: list[Path], ratio: float, repeat: int) -> str:
-    run, slowest = best([sys.executable, str(HERE / "open3d_peer.py"), operation, str(ratio), *map(str, inputs)],
+def open3d_row(operation: str, paths: tuple[Path, ...], ratio: float, repeat: int) -> Timed:
+    """Open3D's call in a child process (its own time in the simplify column), its voxel-size search taken off."""
+    run, slowest = best([sys.executable, str(HERE / "open3d_peer.py"), operation, str(ratio), *map(str, paths)],
                         repeat)
     result = json.loads(run.stdout.strip().splitlines()[-1])
-    n, seconds = result["points"], result["seconds"]
+    search = result["search_seconds"]
     name = "voxel_down_sample" if operation == "voxel" else "farthest_point_down_sample"
-    files = "bcts_1..4" if len(inputs) > 1 else inputs[0].name
-    return (f"| Open3D {name} ({files}) | 1 process | {n:,} | {run.seconds:.2f} ({slowest:.2f}) "
-            f"| {n / run.seconds:,.0f} "
-            f"| {seconds:.2f} | {n / seconds:,.0f} | {run.peak_rss_bytes / 2**20:,.0f} |")
+    return Timed(f"Open3D {name} ({', '.join(p.name for p in paths)})", "1 process", result["points"],
+                 result["kept"], run.seconds - search, slowest - search, run.peak_rss_bytes, (None, None, result["seconds"], None))
+
+
+def open3d_rows(scan: Scan, ratio: float, repeat: int) -> list[Timed]:
+    """Open3D's voxel grid on the scan, and its FPS on the scan, or its first file, if either is small enough."""
+    fps_paths = next((scan.paths[:n] for n in (len(scan.paths), 1)
+                      if sum(laspy.open(p).header.point_count for p in scan.paths[:n]) <= OPEN3D_FPS_MAX), None)
+    rows = [open3d_row("voxel", scan.paths, ratio, repeat)]
+    if fps_paths is None:
+        print(f"skipped Open3D farthest_point_down_sample: over {OPEN3D_FPS_MAX:,} points", flush=True)
+    else:
+        rows.append(open3d_row("fps", fps_paths, ratio, 1))
+    return rows
+
+
+def cached_distance(key: str, find: Callable[[], float]) -> float:
+    """CloudCompare's distance for `key` from the cache file, or found by `find()` and stored there."""
+    cache = json.loads(DISTANCE_CACHE.read_text()) if DISTANCE_CACHE.exists() else {}
+    if key not in cache:
+        cache[key] = find()
+        DISTANCE_CACHE.parent.mkdir(parents=True, exist_ok=True)
+        DISTANCE_CACHE.write_text(json.dumps(cache, indent=1))
+    return cache[key]
+
+
+def cloudcompare_row(scan: Scan, ratio: float, work: Path, repeat: int) -> Timed:
+    """CloudCompare's spatial subsampling on the scan's xyz as PLY (written, and d searched, untimed)."""
+    xyz = np.concatenate([np.column_stack([las.x, las.y, las.z]) for las in map(laspy.read, scan.paths)])
+    source, result = work / f"{scan.name}.ply", work / f"{scan.name}-cc.ply"
+    cloudcompare_peer.write_ply(xyz, source)
+    key = f"{scan.name}:{len(xyz)}:{ratio:g}"
+    distance = cached_distance(key, lambda: cloudcompare_peer.spatial_distance(source, xyz, ratio * len(xyz), result))
+    run, slowest = best(cloudcompare_peer.command(source, distance, result), repeat)
+    return Timed(f"CloudCompare -SS SPATIAL {distance:.4g}", "1 process", len(xyz),
+                 cloudcompare_peer.kept_count(result), run.seconds, slowest, run.peak_rss_bytes)
+
+
+def targets(scan: Scan, ours: dict[tuple[str, int], Timed], peer: Timed | None, bcts_cost: float | None) -> list[Target]:
+    """The issue's targets this input's rows can be checked against (2 workers unless said)."""
+    found = []
+    for method in ("fps", "voxel"):
+        if peer is not None and (method, 2) in ours:
+            found.append(Target(f"{method} wall / CloudCompare wall", ours[method, 2].seconds / peer.seconds, 1.0))
+    learned = ours.get(("learned", 2))
+    if learned is not None and scan.name == "bcts":
+        found.append(Target("learned points/s (wall)", learned.points / learned.seconds, 500_000, floor=True))
+    if learned is not None and bcts_cost is not None and scan.name in ("lone-star", "street"):
+        found.append(Target("learned s per point / bcts's", learned.seconds / learned.points / bcts_cost, 1.5))
+    for (method, workers), one in ours.items():
+        if workers == 1 and (method, 2) in ours:
+            found.append(Target(f"{method} speed, 2 workers / 1", one.seconds / ours[method, 2].seconds, 1.9,
+                                floor=True))
+    if scan.name == "autzen":
+        found += [Target(f"{m} wall s", ours[m, 2].seconds, 1.5) for m in ("fps", "learned") if (m, 2) in ours]
+    return found
+
+
+def bench_scan(scan: Scan, args: argparse.Namespace, work: Path, bcts_cost: float | None) -> float | None:
+    """Print the scan's table; return learned's 2-worker seconds per point (for the other inputs' targets)."""
+    print(f"\n### {scan.name} ({', '.join(p.name for p in scan.paths)})\n")
+    print(cells(*COLUMNS))
+    print(cells(*["---"] + ["---:"] * (len(COLUMNS) - 1)), flush=True)
+    ours: dict[tuple[str, int], Timed] = {}
+    for method in args.methods.split(","):
+        for workers in (1, 2):
+            ours[method, workers] = pipeline_row(scan, method, workers, args.ratio, work, args.repeat)
+            print(ours[method, workers].row(), flush=True)
+    if args.skip_open3d or find_spec("open3d") is None:
+        print("skipped Open3D: --skip-open3d or not installed (pip install -e '.[bench]')", flush=True)
+    else:
+        for row in open3d_rows(scan, args.ratio, args.repeat):
+            print(row.row(), flush=True)
+    peer = cloudcompare_row(scan, args.ratio, work, args.repeat) if cloudcompare_peer.available() else None
+    print(peer.row() if peer else "skipped CloudCompare: not on PATH (Debian's cloudcompare)", flush=True)
+    for target in targets(scan, ours, peer, bcts_cost):
+        print(target.row(), flush=True)
+    learned = ours.get(("learned", 2))
+    return learned.seconds / learned.points if learned else None
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding bcts_1..4.laz")
+    parser.add_argument("--inputs", default="bcts", help=f"comma-separated, of {', '.join(INPUTS)}")
+    parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder holding the shared scans")
     parser.add_argument("--ratio", type=float, default=0.1)
     parser.add_argument("--repeat", type=int, default=1, help="runs per row; the fastest is reported")
     parser.add_argument("--methods", default=",".join(METHODS), help="comma-separated pipeline methods to run")
     parser.add_argument("--skip-open3d", action="store_true")
     args = parser.parse_args()
-    inputs = [args.data / f"bcts_{i}.laz" for i in range(1, 5)]
-    missing = [p for p in inputs if not p.exists()]
-    if missing:
-        sys.exit(f"missing input: {missing[0]} (pass --data)")
-    print(f"ratio {args.ratio}, best of {args.repeat}; wall = whole command (imports, read, write), slowest "
-          f"run in brackets; own = the pipeline's or the library call's own time; RSS = peak summed over the "
-          f"process tree")
-    print("| what | workers | points | wall s | points/s (wall) | own s | points/s (own) | peak RSS MiB |")
-    print("| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: |")
-    with tempfile.TemporaryDirectory() as out_dir:
-        for method in args.methods.split(","):
-            for workers in (1, 2):
-                print(pipeline_row(inputs, method, workers, args.ratio, Path(out_dir), args.repeat), flush=True)
-    if not args.skip_open3d:
-        print(open3d_row("voxel", inputs, args.ratio, args.repeat), flush=True)
-        print(open3d_row("fps", inputs[:1], args.ratio, 1), flush=True)
+    names = args.inputs.split(",")
+    if unknown := set(names) - set(INPUTS):
+        sys.exit(f"unknown input {sorted(unknown)[0]}: choose from {', '.join(INPUTS)}")
+    print(f"ratio {args.ratio}, best of {args.repeat}; wall = whole command (imports, read, write), slowest run in "
+          f"brackets; phases as `pipeline run -v` prints them (Open3D: its call's own time under simplify); RSS = "
+          f"peak summed over the process tree; targets at 2 workers unless said")
+    bcts_cost = None
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in sorted(names, key=INPUTS.index):  # bcts first: the others' per-point cost is set against it
+            scan = scan_of(name, args.data, Path(tmp))
+            if scan is not None:
+                cost = bench_scan(scan, args, Path(tmp), bcts_cost)
+                bcts_cost = cost if name == "bcts" else bcts_cost
 
 
 if __name__ == "__main__":
