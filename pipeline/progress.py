@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
@@ -18,6 +19,7 @@ from tqdm import tqdm
 
 INTERVAL_ENV = "PIPELINE_PROGRESS_SECONDS"  # seconds between progress lines off a terminal
 DEFAULT_INTERVAL = 10.0
+HEARTBEAT_MIN = 1.0  # seconds: shorter intervals (tests) print on finished steps only
 T = TypeVar("T")
 
 
@@ -63,13 +65,29 @@ class Progress:
 
 
 class Phase:
-    """One phase's count of steps and points, shown as its Progress says."""
+    """One phase's count of steps and points, shown as its Progress says. Off a terminal a heartbeat
+    thread writes the line when no step finished for an interval, so a phase of a few long tasks is not
+    silent until the first ends (intervals under HEARTBEAT_MIN seconds rely on the steps alone)."""
 
     def __init__(self, progress: Progress, desc: str, total: int, unit: str) -> None:
         self.progress, self.desc, self.total, self.unit = progress, desc, total, unit
         self.done = self.points = 0
         self.started = self.last = time.perf_counter()
         self.bar = tqdm(total=total, desc=desc, unit=unit, leave=False, disable=progress.mode != "bar")
+        self._lock, self._stopped = threading.Lock(), threading.Event()
+        if progress.mode in ("lines", "json") and progress.interval >= HEARTBEAT_MIN:
+            threading.Thread(target=self._beat, daemon=True).start()
+
+    def _beat(self) -> None:
+        """Emit a line every interval in which no step did."""
+        while not self._stopped.wait(self.progress.interval / 4):
+            self._emit_if_due()
+
+    def _emit_if_due(self) -> None:
+        with self._lock:
+            if time.perf_counter() - self.last >= self.progress.interval and not self._stopped.is_set():
+                self.last = time.perf_counter()
+                self.progress.emit(self)
 
     def update(self, steps: int = 1, points: int = 0) -> None:
         """Count finished steps and the points they handled."""
@@ -80,15 +98,16 @@ class Phase:
             if self.points and elapsed > 0:
                 self.bar.set_postfix_str(f"{self.points / elapsed:,.0f} points/s")
             self.bar.update(steps)
-        elif self.progress.mode in ("lines", "json") and time.perf_counter() - self.last >= self.progress.interval:
-            self.last = time.perf_counter()
-            self.progress.emit(self)
+        elif self.progress.mode in ("lines", "json"):
+            self._emit_if_due()
 
     def close(self) -> None:
         """End the phase: a last line when it ran long enough to have shown progress."""
         self.bar.close()
-        if self.progress.mode in ("lines", "json") and self.last > self.started:
-            self.progress.emit(self, final=True)
+        with self._lock:
+            self._stopped.set()
+            if self.progress.mode in ("lines", "json") and self.last > self.started:
+                self.progress.emit(self, final=True)
 
     def __enter__(self) -> "Phase":
         return self
