@@ -136,7 +136,7 @@ class LevelSpill:
         """Spill one tile's records (priority order), split into their levels."""
         starts = priority_levels(len(records), self.bounds)
         for level, (lo, hi) in enumerate(zip(starts[:-1], starts[1:])):
-            records[lo:hi].tofile(self.streams[level])
+            self.streams[level].write(records[lo:hi].tobytes())  # not tofile: its errors lose errno (ENOSPC)
             self.counts[level] += hi - lo
         if len(records) == 0:
             return
@@ -226,7 +226,7 @@ def node_records(path: Path, count: int, depth: int, level: int, cube: Cube, hea
                     child = path.parent / f"{path.name}-{below}-{cell}"
                     streams[cell] = files.enter_context(open(child, "wb"))
                     children[cell] = (child, 0)
-                chunk[picked].tofile(streams[cell])
+                streams[cell].write(chunk[picked].tobytes())
                 children[cell] = (children[cell][0], children[cell][1] + len(picked))
     path.unlink()
     for child, size in children.values():

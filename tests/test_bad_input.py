@@ -250,7 +250,7 @@ def in_private_mount(mount: Path, options: str, *args: str) -> subprocess.Comple
                           env={**os.environ, "MNT": str(mount)}, timeout=600)
 
 
-@pytest.mark.parametrize("suffix", [".las", ".laz", ".zarr"])
+@pytest.mark.parametrize("suffix", [".las", ".laz", ".copc.laz", ".zarr"])
 def test_full_disk_at_output(tmp_path, suffix):
     """Scratch fits, the output does not: the error names the output and says so; nothing is left there."""
     source = make_las(tmp_path / "in.las", scattered(30_000))
