@@ -53,6 +53,8 @@ EVLR_HEADER_SIZE = 60
 KEY_BITS = 21               # bits of a cell key per axis when packed in one int64
 ENTRY = struct.Struct("<iiiiQii")  # hierarchy entry: key (level, x, y, z), offset, byte size, point count
 COPC_USER_ID = "copc"
+COPC_SPILL_COPIES = 2       # the spill beside the output holds the kept records about twice at its peak (a level
+                            # and its split parts), uncompressed
 
 
 def write_copc(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[TilePart], meta: OutputMeta) -> int:

@@ -23,10 +23,10 @@ from pipeline.output_guard import check_output
 from pipeline.progress import Progress, counted
 from pipeline.scan import Piece, Scan
 from pipeline.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, simplify_tile, survey_tile
-from pipeline.validate import check_run
+from pipeline.validate import check_room, check_run
 from pipeline.workdir import WorkDir, output_settings
 from pipeline.output_meta import OutputMeta
-from pipeline.copc_output import copc_point_format
+from pipeline.copc_output import COPC_SPILL_COPIES, copc_point_format
 from pipeline.writers import COPC_SUFFIX, OUTPUT_SUFFIXES, write_output
 from tiling.budgets import (coverage_weights, even_spacing, nested_budgets, pooled_median, saliency_weights,
                             target_count, tile_budgets, voxels_at)
@@ -102,9 +102,11 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
         check_output(path, [Path(p) for p in inputs], overwrite, OUTPUT_SUFFIXES)
         if path.name.lower().endswith(COPC_SUFFIX):  # refused now, not after the whole simplification
             try:
-                copc_point_format(scan.point_format)
+                records = copc_point_format(scan.point_format).size * target_count(config.ratio, scan.point_count)
             except PipelineError as exc:
                 raise PipelineError(f"{path}: {exc}") from None
+            check_room(path.parent, COPC_SPILL_COPIES * records, "the COPC writer's spill of the kept points",
+                       "write .laz, or free space beside the output")
     check_run(scan, config.allow_geographic, Path(scratch or output.parent),
               kept=int(target_count(config.ratio, scan.point_count) * (1 + RESERVE_SHARE)),
               surveyed=config.method in FILL_LOSSES, progress=progress or Progress())

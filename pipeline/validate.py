@@ -215,7 +215,12 @@ def check_run(scan: "Scan", allow_degrees: bool, scratch: Path, kept: int = 0, s
         raise PipelineError(f"{scratch}: scratch folder does not exist")
     need = SCRATCH_SLACK * (scan.point_count * (scan.dtype.itemsize + TAIL + (SURVEY_BYTES if surveyed else 0))
                             + kept * (scan.dtype.itemsize + RESULT_XYZ_BYTES))
-    free = shutil.disk_usage(scratch).free
+    check_room(scratch, need, "the scratch tiles", "pass --scratch a folder on a larger disk")
+
+
+def check_room(folder: Path, need: float, what: str, advice: str) -> None:
+    """Refuse, before any work, a folder whose disk has less than `need` bytes free for `what`."""
+    free = shutil.disk_usage(folder).free
     if free < need:
-        raise PipelineError(f"{scratch}: not enough space left for the scratch tiles ({free / 2**20:.1f} MiB free, "
-                            f"about {need / 2**20:.1f} MiB needed): pass --scratch a folder on a larger disk")
+        raise PipelineError(f"{folder}: not enough space left for {what} ({free / 2**20:.1f} MiB free, "
+                            f"about {need / 2**20:.1f} MiB needed): {advice}")

@@ -250,7 +250,7 @@ def in_private_mount(mount: Path, options: str, *args: str) -> subprocess.Comple
                           env={**os.environ, "MNT": str(mount)}, timeout=600)
 
 
-@pytest.mark.parametrize("suffix", [".las", ".laz", ".copc.laz", ".zarr"])
+@pytest.mark.parametrize("suffix", [".las", ".laz", ".zarr"])
 def test_full_disk_at_output(tmp_path, suffix):
     """Scratch fits, the output does not: the error names the output and says so; nothing is left there."""
     source = make_las(tmp_path / "in.las", scattered(30_000))
@@ -261,6 +261,18 @@ def test_full_disk_at_output(tmp_path, suffix):
     assert result.stdout == ""  # the mount is empty afterwards
     assert all(".work-" in p.name for p in tmp_path.glob(".out*"))  # only the finished tiles, kept to resume
     assert "re-run the same command to resume" in result.stderr
+
+
+def test_no_room_for_the_copc_spill_is_refused_before_any_work(tmp_path):
+    """COPC spills the kept records beside the output before compressing them node by node: a disk without
+    room for that is refused up front, with nothing written and no work folder left."""
+    source = make_las(tmp_path / "in.las", scattered(30_000))
+    output = tmp_path / "full" / "out.copc.laz"
+    result = in_private_mount(output.parent, "size=64k", "run", str(source), "--ratio", "0.9", "-o", str(output),
+                              "--scratch", str(tmp_path), *FAST)
+    assert_one_line_error(result, str(output.parent), "not enough space left", "COPC")
+    assert result.stdout == ""
+    assert not list(tmp_path.glob(".out*"))
 
 
 def test_full_disk_at_scratch(tmp_path):
