@@ -44,7 +44,8 @@ def seam_rejections(plan: TilePlan, results: dict[int, str], budgets: np.ndarray
     bands, candidate_counts = [], np.zeros(len(plan.tiles), dtype=np.int64)
     for tile_id, path in sorted(results.items()):
         on_tile()
-        xyz = TileResult.load(path).xyz
+        with np.load(path) as saved:  # the candidates' positions only: records are read once, when writing
+            xyz = saved["xyz"]
         candidate_counts[tile_id] = len(xyz)
         near = np.flatnonzero(band_mask(xyz, plan.bounds(tile_id), tolerance))
         bands.append(SeamBand(tile_id, near, xyz[near]))

@@ -40,7 +40,7 @@ import numpy as np
 from laspy.vlrs.vlrlist import VLRList
 
 from pipeline.errors import PipelineError
-from pipeline.output_meta import OutputMeta, TilePart
+from pipeline.output_meta import OutputMeta, TilePart, priority_fraction
 
 COPC_FORMATS = {0: 6, 1: 6, 2: 7, 3: 7, 6: 6, 7: 7, 8: 8}  # input point format -> the COPC one that holds it
 NODE_POINTS = 60_000        # points the root holds at most; other nodes hold about as many on surface data
@@ -112,8 +112,7 @@ def level_bounds(total: int) -> np.ndarray:
 
 def priority_levels(count: int, bounds: np.ndarray) -> np.ndarray:
     """(count + 1,) start of each level's run of a tile's `count` records in priority order, then `count`."""
-    priority = (np.arange(count) + 0.5) / max(count, 1)
-    return np.concatenate([[0], np.searchsorted(priority, bounds[:-1], side="left"), [count]])
+    return np.concatenate([[0], np.searchsorted(priority_fraction(count), bounds[:-1], side="left"), [count]])
 
 
 class LevelSpill:

@@ -17,6 +17,7 @@ import zarr
 
 from pipeline.config import build_config
 from pipeline.errors import PipelineError
+from pipeline.output_meta import priority_fraction
 from pipeline.runner import run_scan
 
 if TYPE_CHECKING:
@@ -51,7 +52,7 @@ def simplify(points: np.ndarray | laspy.LasData, ratio: float, *, method: str = 
 def progressive_order(counts: np.ndarray) -> np.ndarray:
     """(sum(counts),) an order of tile-after-tile outputs by each point's fractional rank (i + 0.5) / count
     in its tile, ties in tile order: every prefix takes each tile's best points in proportion."""
-    rank = np.concatenate([(np.arange(c) + 0.5) / c for c in counts]) if len(counts) else np.empty(0)
+    rank = np.concatenate([priority_fraction(int(c)) for c in counts]) if len(counts) else np.empty(0)
     return np.argsort(rank, kind="stable")
 
 

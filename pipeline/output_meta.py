@@ -26,3 +26,9 @@ class OutputMeta:
     method: str
     version: str
     settings: dict[str, Any] = field(default_factory=dict)  # the run's settings, JSON-able, lengths in metres
+
+
+def priority_fraction(count: int) -> np.ndarray:
+    """(count,) each record's place in a part's priority order as a fraction, (i + 0.5) / count: the first k %
+    of every tile together are the scan's best k % (COPC levels and pipeline.simplify's order use it)."""
+    return (np.arange(count) + 0.5) / max(count, 1)
