@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from model.geometry import bandwidth, curvature, knn, local_frames, mean_curvature, roughness
+from model.geometry import local_features, roughness
 from model.selection import FillLoss, Selection, Tile
 from model.stratified import curvature_loss, stratified_selection
 
@@ -29,32 +29,34 @@ NEIGHBOURS = 16
 
 
 def descriptors(tile: Tile, budget: int, phase: float = 0.5) -> np.ndarray:
-    """(n, 12) float32 per-point descriptors of a tile (see described)."""
+    """(c, 12) float32 descriptors of a tile's c core points, in tile order (see described)."""
     return described(tile, budget, phase)[0]
 
 
 def described(tile: Tile, budget: int, phase: float = 0.5) -> tuple[np.ndarray, float]:
-    """(n, 12) float32 per-point descriptors of a tile to be thinned to `budget` core points: curvature
-    kappa, the middle eigenvalue share, mean curvature, roughness, mean / std / max of kappa and std of
-    mean curvature over the 16 neighbours, the 1st and 8th neighbour distances over the 16th, log(ratio),
-    and the curvature loss of the even thinning at `phase` over its mean (model.stratified.curvature_loss:
-    a noisy sample of what is predicted). Unchanged by translation and scale; by rotation too, but for
-    the measured loss (the Morton curve, so the thinning measured, turns with the axes). Also the
-    measured loss's mean (K units): the scale that the relative prediction is read against."""
-    xyz = tile.xyz
-    nbrs = knn(xyz, NEIGHBOURS)
-    eigenvalues, _ = local_frames(xyz, nbrs)
-    kappa = curvature(eigenvalues)
-    kbar = mean_curvature(kappa, nbrs, bandwidth(nbrs))
-    total = eigenvalues.sum(axis=1)
-    middle = np.divide(eigenvalues[:, 1], total, out=np.zeros(len(total)), where=total > 0)
-    around = kappa[nbrs.indices]
+    """(c, 12) float32 descriptors of the c core points of a tile to be thinned to `budget` of them:
+    curvature kappa, the middle eigenvalue share, mean curvature, roughness, mean / std / max of kappa and
+    std of mean curvature over the 16 neighbours, the 1st and 8th neighbour distances over the 16th,
+    log(ratio), and the curvature loss of the even thinning at `phase` over its core mean
+    (model.stratified.curvature_loss: a noisy sample of what is predicted). Unchanged by translation and
+    scale; by rotation too, but for the measured loss (the Morton curve, so the thinning measured, turns
+    with the axes). Also the measured loss's core mean (K units): the scale that the relative prediction
+    is read against. The halo serves as neighbours only (model.geometry.local_features), so neither its
+    width nor its own losses change what the core is told."""
+    core = np.flatnonzero(tile.core)
+    local = local_features(tile.xyz, core, NEIGHBOURS)
+    nbrs = local.nbrs
+    kappa, kbar = local.kappa[core], local.mean_curvature[core]
+    total = local.eigenvalues.sum(axis=1)
+    middle = np.divide(local.eigenvalues[:, 1], total, out=np.zeros(len(total)), where=total > 0)
+    around = local.kappa[nbrs.indices]
     distance = np.sqrt(nbrs.sq_dist.astype(np.float64))
     far = np.where(distance[:, -1] > 0, distance[:, -1], 1.0)
     measured = curvature_loss(tile, budget, phase, here=kbar)
     columns = [kappa, middle, kbar, roughness(kappa, kbar), around.mean(axis=1), around.std(axis=1),
-               around.max(axis=1), kbar[nbrs.indices].std(axis=1), distance[:, min(1, nbrs.k - 1)] / far,
-               distance[:, nbrs.k // 2] / far, np.full(len(xyz), np.log(budget / tile.core_count)), relative(measured)]
+               around.max(axis=1), local.mean_curvature[nbrs.indices].std(axis=1),
+               distance[:, min(1, nbrs.k - 1)] / far, distance[:, nbrs.k // 2] / far,
+               np.full(len(core), np.log(budget / tile.core_count)), relative(measured)]
     return np.column_stack(columns).astype(np.float32), float(measured.mean()) if len(measured) else 0.0
 
 
@@ -102,10 +104,12 @@ def predicted_loss(tile: Tile, budget: int, path: Path = WEIGHTS) -> np.ndarray:
 
 
 def predicted_fill_loss(tile: Tile, budget: int, path: Path = WEIGHTS) -> FillLoss:
-    """The expected loss over its core mean, and that mean in K units (the measured mean times the
-    prediction's core mean, since the network predicts relative to the measured mean)."""
+    """The expected loss of each tile point (n,) over its core mean, 0 in the halo, and that mean in K
+    units (the measured mean times the prediction's core mean, since the network predicts relative to
+    the measured mean)."""
     features, measured_level = described(tile, budget)
-    predicted = load_detail_weights(path).predict(features).astype(np.float64)
+    predicted = np.zeros(len(tile.xyz))
+    predicted[tile.core] = load_detail_weights(path).predict(features)
     core_mean = float(predicted[tile.core].mean()) if tile.core.any() else 0.0
     if core_mean <= 0:
         return FillLoss(np.zeros_like(predicted), 0.0)

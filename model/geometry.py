@@ -52,37 +52,46 @@ def knn(xyz: np.ndarray, k: int = 16) -> Neighbours:
     """The k nearest neighbours of every point (k clipped to n), queried in chunks to bound memory.
 
     pykdtree, not scipy's cKDTree: 1.3-1.6x faster on one thread from 38k to 700k scan points, with
-    the same distances. Queries go in Morton order so consecutive ones walk the same nodes (700k
-    shuffled points: 7.0 s in input order, 1.6 s with the sort). Among exact duplicates the tree may list
-    a twin before the point itself; such rows are fixed so column 0 is always the point.
+    the same distances (nanoflann and Open3D's search measured no faster on a 32k-point tile).
     """
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
-    n = len(xyz)
-    k = min(k, n)
-    indices = np.empty((n, k), dtype=np.int64)
-    sq_dist = np.empty((n, k), dtype=np.float32)
-    if k == 0:
+    return neighbours(KDTree(xyz), xyz, np.arange(len(xyz)), k)
+
+
+def neighbours(tree: KDTree, xyz: np.ndarray, rows: np.ndarray, k: int) -> Neighbours:
+    """The k nearest of the (n, 3) float64 points `tree` holds (`xyz`) to each of xyz[rows]: (len(rows), k).
+
+    Queries go in Morton order so consecutive ones walk the same nodes (700k shuffled points: 7.0 s in
+    input order, 1.6 s with the sort). Among exact duplicates the tree may list a twin before the point
+    itself; such rows are fixed so column 0 is always the point.
+    """
+    k = min(k, len(xyz))
+    indices = np.empty((len(rows), k), dtype=np.int64)
+    sq_dist = np.empty((len(rows), k), dtype=np.float32)
+    if k == 0 or len(rows) == 0:
         return Neighbours(indices, sq_dist)
-    tree = KDTree(xyz)
-    order = morton_order(xyz)
-    for start in range(0, n, QUERY_POINTS):
-        rows = order[start : start + QUERY_POINTS]
-        dist, idx = tree.query(xyz[rows], k, sqr_dists=True)
-        indices[rows] = idx.reshape(len(rows), k)
-        sq_dist[rows] = dist.reshape(len(rows), k)
-    twins = np.flatnonzero(indices[:, 0] != np.arange(n))
+    order = morton_order(xyz[rows])
+    for start in range(0, len(rows), QUERY_POINTS):
+        at = order[start : start + QUERY_POINTS]
+        dist, idx = tree.query(xyz[rows[at]], k, sqr_dists=True)
+        indices[at] = idx.reshape(len(at), k)
+        sq_dist[at] = dist.reshape(len(at), k)
+    twins = np.flatnonzero(indices[:, 0] != rows)
     if len(twins):
+        itself = rows[twins]
         listed = indices[twins]
-        found = listed == twins[:, None]
+        found = listed == itself[:, None]
         has = found.any(axis=1)  # else more than k twins: every column is a twin at distance 0
         listed[has, found[has].argmax(axis=1)] = listed[has, 0]
-        listed[:, 0] = twins
+        listed[:, 0] = itself
         indices[twins] = listed
     return Neighbours(indices, sq_dist)
 
 
-def local_frames(xyz: np.ndarray, nbrs: Neighbours) -> tuple[np.ndarray, np.ndarray]:
-    """Eigenvalues (n, 3) float64 ascending and unit normals (n, 3) float32 of each point's covariance.
+def local_frames(xyz: np.ndarray, nbrs: Neighbours,
+                 rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Eigenvalues (m, 3) float64 ascending and unit normals (m, 3) float32 of the covariance of each point
+    xyz[rows] (every point when None) over its neighbours `nbrs` (m rows).
 
     As the paper writes it, C_i = sum_j (p_j - p_i)(p_j - p_i)^T over the neighbours j of i, centred on
     the point, not on the neighbourhood mean as in Pauly et al.'s surface variation (model/losses.py
@@ -96,7 +105,8 @@ def local_frames(xyz: np.ndarray, nbrs: Neighbours) -> tuple[np.ndarray, np.ndar
     of a patch whose noise is 1e-4 of its extent).
     """
     xyz = np.asarray(xyz, dtype=np.float64)
-    n = len(xyz)
+    rows = np.arange(len(xyz)) if rows is None else rows
+    n = len(rows)
     eigenvalues = np.zeros((n, 3))
     normals = np.zeros((n, 3), dtype=np.float32)
     buffer = np.empty((min(n, CHUNK_POINTS), nbrs.k, 3))  # reused: fresh pages per chunk cost more than the maths
@@ -104,7 +114,7 @@ def local_frames(xyz: np.ndarray, nbrs: Neighbours) -> tuple[np.ndarray, np.ndar
         stop = min(start + CHUNK_POINTS, n)
         offsets = buffer[: stop - start]
         np.take(xyz, nbrs.indices[start:stop], axis=0, out=offsets)  # faster than fancy indexing
-        offsets -= xyz[start:stop, None, :]
+        offsets -= xyz[rows[start:stop], None, :]
         covariance = offsets.transpose(0, 2, 1) @ offsets
         eigenvalues[start:stop], normals[start:stop] = _symmetric_eigen(covariance)
     return eigenvalues, normals
@@ -170,12 +180,13 @@ def bandwidth(nbrs: Neighbours) -> np.ndarray:
 
 
 def mean_curvature(kappa: np.ndarray, nbrs: Neighbours, h: np.ndarray | float) -> np.ndarray:
-    """K_i = sum_j kappa_j w_ij / sum_j w_ij, w_ij = exp(-d_ij^2 / h_i), over i's neighbours (itself included).
+    """K_i = sum_j kappa_j w_ij / sum_j w_ij, w_ij = exp(-d_ij^2 / h_i), over i's neighbours (itself included):
+    one value per row of `nbrs` (kappa is indexed by their indices).
 
-    `h` is per point (see `bandwidth`) or one constant as in the paper; the point's own weight is 1,
+    `h` is per row (see `bandwidth`) or one constant as in the paper; the point's own weight is 1,
     so the denominator never vanishes.
     """
-    h = np.broadcast_to(np.asarray(h, dtype=np.float32), (len(kappa),))
+    h = np.broadcast_to(np.asarray(h, dtype=np.float32), (len(nbrs.indices),))
     weights = np.exp(-nbrs.sq_dist / h[:, None])
     return (np.einsum("nk,nk->n", kappa[nbrs.indices], weights) / weights.sum(axis=1)).astype(np.float32)
 
@@ -203,3 +214,46 @@ def point_features(xyz: np.ndarray, k: int = 16) -> PointFeatures:
     kappa = curvature(eigenvalues)
     kbar = mean_curvature(kappa, nbrs, bandwidth(nbrs))
     return PointFeatures(nbrs, normals, kappa, kbar, roughness(kappa, kbar))
+
+
+@dataclass(frozen=True)
+class LocalFeatures:
+    """Curvature features of some rows of a cloud, their neighbours found among all its points."""
+
+    nbrs: Neighbours  # (m, k) the rows' neighbours, indices into the whole cloud
+    eigenvalues: np.ndarray  # (m, 3) float64 ascending
+    kappa: np.ndarray  # (n,) float32: set on the rows, their neighbours and the neighbours' neighbours, else 0
+    mean_curvature: np.ndarray  # (n,) float32: set on the rows and their neighbours, else 0
+
+
+def local_features(xyz: np.ndarray, rows: np.ndarray, k: int = 16) -> LocalFeatures:
+    """Features of xyz[rows] as point_features gives them on the whole cloud, querying only the rows and the
+    two rings of neighbours their mean curvature and its spread reach: a tile's halo is there as
+    neighbours, and most of a fixed-width halo lies beyond those rings on a dense scan."""
+    xyz = np.ascontiguousarray(xyz, dtype=np.float64)
+    if len(rows) == 0:
+        empty = Neighbours(np.empty((0, min(k, len(xyz))), dtype=np.int64), np.empty((0, min(k, len(xyz))), np.float32))
+        return LocalFeatures(empty, np.empty((0, 3)), np.zeros(len(xyz), np.float32), np.zeros(len(xyz), np.float32))
+    tree = KDTree(xyz)
+    queried = np.zeros(len(xyz), dtype=bool)
+    rings, found = [], []
+    wanted = np.asarray(rows, dtype=np.int64)
+    for ring in range(3):  # the rows, their neighbours, the neighbours' neighbours
+        if ring:
+            reached = np.zeros(len(xyz), dtype=bool)
+            reached[found[-1].indices.ravel()] = True  # a scatter, not np.unique's sort of m * k indices
+            wanted = np.flatnonzero(reached & ~queried)
+        ring_nbrs = neighbours(tree, xyz, wanted, k)
+        queried[wanted] = True
+        rings.append(wanted)
+        found.append(ring_nbrs)
+    near = np.concatenate(rings)
+    every = Neighbours(np.concatenate([f.indices for f in found]), np.concatenate([f.sq_dist for f in found]))
+    eigenvalues, _ = local_frames(xyz, every, near)
+    kappa = np.zeros(len(xyz), dtype=np.float32)
+    kappa[near] = curvature(eigenvalues)
+    inner = len(rings[0]) + len(rings[1])
+    inner_nbrs = Neighbours(every.indices[:inner], every.sq_dist[:inner])
+    kbar = np.zeros(len(xyz), dtype=np.float32)
+    kbar[near[:inner]] = mean_curvature(kappa, inner_nbrs, bandwidth(inner_nbrs))
+    return LocalFeatures(found[0], eigenvalues[: len(rings[0])], kappa, kbar)

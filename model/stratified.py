@@ -25,7 +25,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
-from model.geometry import morton_order, point_features
+from model.geometry import local_features, morton_order, point_features
 from model.metrics import nearest
 from model.selection import FillContext, FillLoss, Selection, Tile, topped_up
 
@@ -43,8 +43,9 @@ def no_loss(tile: Tile, budget: int) -> FillLoss:
 
 
 def measured_loss(tile: Tile, budget: int) -> FillLoss:
-    """The curvature loss of one even thinning of the tile itself (curvature_loss), over its mean."""
-    loss = curvature_loss(tile, budget)
+    """The curvature loss of one even thinning of the tile itself (curvature_loss), over its core mean; 0 in the halo."""
+    loss = np.zeros(len(tile.xyz))
+    loss[tile.core] = curvature_loss(tile, budget)
     level = float(loss[tile.core].mean()) if tile.core.any() else 0.0
     return FillLoss(loss / level if level > 0 else np.zeros_like(loss), level)
 
@@ -129,15 +130,15 @@ def pick_spacings(tile: Tile, budget: int, loss: FillLoss) -> np.ndarray:
 
 
 def curvature_loss(tile: Tile, budget: int, phase: float = 0.5, here: np.ndarray | None = None) -> np.ndarray:
-    """(n,) |K(p) - K'(nearest pick)| per tile point: how far an even thinning to `budget` core points (the
-    stratified fill with equal weights, at `phase`) moves the mean curvature K that CE compares (K' on
-    the thinned cloud). It is what CE adds up, point by point, for that thinning. `here`: the tile's own
-    K, if already known."""
+    """(c,) |K(p) - K'(nearest pick)| per core point p, in tile order: how far an even thinning to `budget`
+    core points (the stratified fill with equal weights, at `phase`) moves the mean curvature K that CE
+    compares (K' on the thinned cloud). It is what CE adds up, point by point, for that thinning. `here`:
+    the core's own K (c,), if already known."""
     core = np.flatnonzero(tile.core)
     fill = systematic_picks(core[morton_order(tile.xyz[core])], budget, phase)
-    here = point_features(tile.xyz).mean_curvature if here is None else here
+    here = local_features(tile.xyz, core).mean_curvature[core] if here is None else here
     thinned = point_features(tile.xyz[fill]).mean_curvature
-    return np.abs(here - thinned[nearest(tile.xyz[fill], tile.xyz).index])
+    return np.abs(here - thinned[nearest(tile.xyz[fill], tile.xyz[core]).index])
 
 
 def weighted_picks(curve: np.ndarray, weights: np.ndarray | None, count: int, phase: float) -> np.ndarray:

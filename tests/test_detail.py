@@ -55,6 +55,19 @@ def test_descriptors_do_not_depend_on_where_the_tile_is_or_its_unit():
     assert np.mean(np.abs(here[:, 11] - there[:, 11]) < 1e-3) > 0.99  # Morton round-off may move a pick
 
 
+def test_descriptors_of_a_core_do_not_depend_on_the_halo_beyond_its_neighbours():
+    """The same core with a 2 m halo and with a 6 m one: the same descriptors and the same prediction
+    (its halo serves as neighbours; how wide it is must not change what the core is told)."""
+    tile, _, _ = edge_pole_plane(5)
+    xy = tile.xyz[:, :2] - tile.xyz[:, :2].min(axis=0)
+    core = (xy[:, 0] > 6) & (xy[:, 0] < 14) & (xy[:, 1] > 6) & (xy[:, 1] < 14)
+    near = (xy[:, 0] > 4) & (xy[:, 0] < 16) & (xy[:, 1] > 4) & (xy[:, 1] < 16)
+    wide = Tile(tile.xyz, core, tile.centre, tile.seed)
+    narrow = Tile(tile.xyz[near], core[near], tile.centre, tile.seed)
+    np.testing.assert_array_equal(descriptors(wide, 1_000), descriptors(narrow, 1_000))
+    assert len(descriptors(wide, 1_000)) == core.sum()
+
+
 def test_descriptors_of_a_rotated_tile_agree_but_for_the_measured_thinning():
     tile, _, _ = edge_pole_plane(2)
     angle = 0.7

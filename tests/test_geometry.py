@@ -7,6 +7,7 @@ from model.geometry import (
     bandwidth,
     curvature,
     knn,
+    local_features,
     local_frames,
     morton_order,
     mean_curvature,
@@ -216,3 +217,21 @@ def test_morton_order_is_a_permutation_that_keeps_neighbours_close():
     order = morton_order(shuffled)
     assert np.array_equal(np.sort(order), np.arange(len(grid)))
     assert np.abs(np.diff(shuffled[order], axis=0)).sum(1).mean() < 2.5  # shuffled: about 16
+
+
+def test_local_features_of_a_tile_core_are_the_whole_clouds_and_query_only_two_rings():
+    """The core of a tile inside a wide halo: kappa, mean curvature and neighbours of the core rows (and mean
+    curvature of their neighbours) as point_features gives them on every point, duplicates included,
+    from queries of the core and the two rings of neighbours its mean curvature reaches, not the halo."""
+    xyz = np.concatenate([wavy(20_000, seed=3) * [10, 10, 1], wavy(2_000, seed=3)[:300] * [10, 10, 1]])
+    core = np.flatnonzero((np.abs(xyz[:, 0]) < 3) & (np.abs(xyz[:, 1]) < 3))
+    whole, local = point_features(xyz), local_features(xyz, core)
+    np.testing.assert_array_equal(local.nbrs.indices, whole.nbrs.indices[core])
+    reached = np.unique(whole.nbrs.indices[core])
+    np.testing.assert_array_equal(local.mean_curvature[reached], whole.mean_curvature[reached])
+    np.testing.assert_array_equal(local.kappa[np.unique(whole.nbrs.indices[reached])],
+                                  whole.kappa[np.unique(whole.nbrs.indices[reached])])
+    set_rows = np.flatnonzero(local.kappa != 0)
+    assert len(core) < len(set_rows) < 0.5 * len(xyz)  # the halo beyond two rings was never queried
+    empty = local_features(xyz, np.empty(0, dtype=np.int64))
+    assert empty.nbrs.indices.shape == (0, 16) and not empty.kappa.any()

@@ -174,3 +174,19 @@ def test_even_spacing_is_the_voxel_edge_whose_scan_total_is_the_target():
     edge = even_spacing(occupied, sizes, target=1_000)
     assert sizes[0] < edge < sizes[-1]
     assert abs(voxels_at(occupied, sizes, edge).sum() - 1_000) < 0.1 * 1_000
+
+
+def test_occupied_voxels_count_each_level_as_its_own_grid_would():
+    """Counted level from level (the occupied voxels halved), the counts are those of each grid on its own:
+    distinct floor((p - low) / size) rows, on a cloud far from the origin with clumps and duplicates."""
+    from tiling.budgets import occupied_voxels
+
+    rng = np.random.default_rng(8)
+    xyz = np.concatenate([rng.normal(0, 3, size=(5_000, 3)), rng.uniform(-20, 20, size=(2_000, 3))]) + [-7e5, 5e6, -3.1]
+    xyz = np.concatenate([xyz, xyz[:500]])
+    sizes = 0.37 * 2.0 ** np.arange(-3, 6)
+    expected = [len(np.unique(np.floor((xyz - xyz.min(axis=0)) / size), axis=0)) for size in sizes]
+    np.testing.assert_array_equal(occupied_voxels(xyz, sizes), expected)
+    assert occupied_voxels(xyz[:1], sizes).tolist() == [1] * len(sizes)
+    with pytest.raises(ValueError, match="double"):
+        occupied_voxels(xyz, np.array([1.0, 3.0]))
