@@ -50,12 +50,12 @@ def described(tile: Tile, budget: int, phase: float = 0.5) -> tuple[np.ndarray, 
     total = local.eigenvalues.sum(axis=1)
     middle = np.divide(local.eigenvalues[:, 1], total, out=np.zeros(len(total)), where=total > 0)
     around = local.kappa[nbrs.indices]
-    distance = np.sqrt(nbrs.sq_dist.astype(np.float64))
-    far = np.where(distance[:, -1] > 0, distance[:, -1], 1.0)
+    nearest, middle_one, farthest = np.sqrt(nbrs.sq_dist[:, [min(1, nbrs.k - 1), nbrs.k // 2, -1]].astype(np.float64)).T
+    far = np.where(farthest > 0, farthest, 1.0)
     measured = curvature_loss(tile, budget, phase, here=kbar)
     columns = [kappa, middle, kbar, roughness(kappa, kbar), around.mean(axis=1), around.std(axis=1),
                around.max(axis=1), local.mean_curvature[nbrs.indices].std(axis=1),
-               distance[:, min(1, nbrs.k - 1)] / far, distance[:, nbrs.k // 2] / far,
+               nearest / far, middle_one / far,
                np.full(len(core), np.log(budget / tile.core_count)), relative(measured)]
     return np.column_stack(columns).astype(np.float32), float(measured.mean()) if len(measured) else 0.0
 

@@ -11,8 +11,10 @@ from dataclasses import dataclass
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-CHUNK_POINTS = 200_000  # points per batch of kNN results and covariances: about 80 MB of float64 offsets at k=16
+CHUNK_POINTS = 200_000  # points per batch of the metrics' queries (model/metrics.py, model/sdm.py)
 QUERY_POINTS = 32_768  # points per kd-tree query: its float64 distances and indices are temporaries
+FRAME_POINTS = 32_768  # points per batch of covariances and their eigen solve: ~15 (m, 3, 3) float64 temporaries
+# (at 200k a batch, a 200k-point tile's survey peaked at 295 MiB traced, and ran 12 % slower)
 NEAR_DOUBLE = 1e-6  # |r| above 1 - this means a nearly repeated eigenvalue: LAPACK instead of the closed form
 ROUND_OFF = 1e-12  # eigenvalues below this share of the trace are solver error (~1e-14 measured): exactly 0
 
@@ -109,9 +111,9 @@ def local_frames(xyz: np.ndarray, nbrs: Neighbours,
     n = len(rows)
     eigenvalues = np.zeros((n, 3))
     normals = np.zeros((n, 3), dtype=np.float32)
-    buffer = np.empty((min(n, CHUNK_POINTS), nbrs.k, 3))  # reused: fresh pages per chunk cost more than the maths
-    for start in range(0, n, CHUNK_POINTS):
-        stop = min(start + CHUNK_POINTS, n)
+    buffer = np.empty((min(n, FRAME_POINTS), nbrs.k, 3))  # reused: fresh pages per chunk cost more than the maths
+    for start in range(0, n, FRAME_POINTS):
+        stop = min(start + FRAME_POINTS, n)
         offsets = buffer[: stop - start]
         np.take(xyz, nbrs.indices[start:stop], axis=0, out=offsets)  # faster than fancy indexing
         offsets -= xyz[rows[start:stop], None, :]
@@ -236,24 +238,23 @@ def local_features(xyz: np.ndarray, rows: np.ndarray, k: int = 16) -> LocalFeatu
         return LocalFeatures(empty, np.empty((0, 3)), np.zeros(len(xyz), np.float32), np.zeros(len(xyz), np.float32))
     tree = KDTree(xyz)
     queried = np.zeros(len(xyz), dtype=bool)
-    rings, found = [], []
+    kappa = np.zeros(len(xyz), dtype=np.float32)
+    found: list[tuple[np.ndarray, Neighbours]] = []  # the rows and the first ring, with their neighbours
     wanted = np.asarray(rows, dtype=np.int64)
-    for ring in range(3):  # the rows, their neighbours, the neighbours' neighbours
+    for ring in range(3):  # the rows, their neighbours, the neighbours' neighbours (kappa only)
         if ring:
             reached = np.zeros(len(xyz), dtype=bool)
-            reached[found[-1].indices.ravel()] = True  # a scatter, not np.unique's sort of m * k indices
+            reached[found[-1][1].indices.ravel()] = True  # a scatter, not np.unique's sort of m * k indices
             wanted = np.flatnonzero(reached & ~queried)
         ring_nbrs = neighbours(tree, xyz, wanted, k)
         queried[wanted] = True
-        rings.append(wanted)
-        found.append(ring_nbrs)
-    near = np.concatenate(rings)
-    every = Neighbours(np.concatenate([f.indices for f in found]), np.concatenate([f.sq_dist for f in found]))
-    eigenvalues, _ = local_frames(xyz, every, near)
-    kappa = np.zeros(len(xyz), dtype=np.float32)
-    kappa[near] = curvature(eigenvalues)
-    inner = len(rings[0]) + len(rings[1])
-    inner_nbrs = Neighbours(every.indices[:inner], every.sq_dist[:inner])
+        eigenvalues, _ = local_frames(xyz, ring_nbrs, wanted)
+        kappa[wanted] = curvature(eigenvalues)
+        if ring == 0:
+            row_eigenvalues = eigenvalues
+        if ring < 2:
+            found.append((wanted, ring_nbrs))
     kbar = np.zeros(len(xyz), dtype=np.float32)
-    kbar[near[:inner]] = mean_curvature(kappa, inner_nbrs, bandwidth(inner_nbrs))
-    return LocalFeatures(found[0], eigenvalues[: len(rings[0])], kappa, kbar)
+    for wanted, ring_nbrs in found:
+        kbar[wanted] = mean_curvature(kappa, ring_nbrs, bandwidth(ring_nbrs))
+    return LocalFeatures(found[0][1], row_eigenvalues, kappa, kbar)

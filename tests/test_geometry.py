@@ -105,7 +105,8 @@ def test_local_frames_match_lapack_on_every_kind_of_neighbourhood():
 def test_chunking_does_not_change_features(monkeypatch):
     xyz = wavy(2_000)
     whole = point_features(xyz)
-    monkeypatch.setattr(geometry, "CHUNK_POINTS", 300)
+    monkeypatch.setattr(geometry, "QUERY_POINTS", 300)
+    monkeypatch.setattr(geometry, "FRAME_POINTS", 300)
     chunked = point_features(xyz)
     np.testing.assert_array_equal(whole.nbrs.indices, chunked.nbrs.indices)
     np.testing.assert_array_equal(whole.kappa, chunked.kappa)
