@@ -49,6 +49,7 @@ _SIMPLIFIERS: dict[str, Simplifier] = {
 }
 PAPER = ("paper", "paper-refined")  # the paper's network: mesh mode gives its GNN the mesh adjacency
 EVEN_SPACING = ("fps", "voxel")  # methods that space points evenly: tile budgets follow covered volume, not counts
+CORE_ONLY = ("fps", "voxel", "random")  # methods that never look at a tile's halo: their tiles load their core only
 FILL_LOSSES: dict[str, LossOf] = {"stratified": no_loss, "stratified-detail": measured_loss, "learned": learned_loss}
 """Stratified methods and their fill weights: a run surveys every tile first, so weights, cover radius
 and tile budgets are set for the whole scan (model.selection.FillContext), as one pass over it would."""

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from model import Tile, get_simplifier
+from model.registry import CORE_ONLY
 
 CLASSIC = ("fps", "voxel", "random", "stratified")  # keep source positions; the learned method has its own tests
 
@@ -101,3 +102,14 @@ def test_exact_duplicates_are_each_kept_once(method):
         for budget in (tile.core_count // 10, tile.core_count * 3 // 4, tile.core_count):
             indices = get_simplifier(method)(tile, budget).indices
             assert len(np.unique(indices)) == budget and tile.core[indices].all()
+
+
+@pytest.mark.parametrize("method", CORE_ONLY)
+def test_core_only_methods_pick_the_same_points_without_the_halo(method):
+    """A run loads only the core of a CORE_ONLY method's tiles: the picks must be those made with the halo."""
+    tile = make_tile()
+    core = np.flatnonzero(tile.core)
+    alone = Tile(tile.xyz[core], np.ones(len(core), dtype=bool), tile.centre, tile.seed)
+    np.testing.assert_array_equal(core[get_simplifier(method)(alone, 1_500).indices],
+                                  get_simplifier(method)(tile, 1_500).indices)
+
