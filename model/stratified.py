@@ -43,7 +43,8 @@ def no_loss(tile: Tile, budget: int) -> FillLoss:
 
 
 def measured_loss(tile: Tile, budget: int) -> FillLoss:
-    """The curvature loss of one even thinning of the tile itself (curvature_loss), over its core mean; 0 in the halo."""
+    """The curvature loss of one even thinning of the tile itself (curvature_loss) over its core mean; 0 in
+    the halo."""
     loss = np.zeros(len(tile.xyz))
     loss[tile.core] = curvature_loss(tile, budget)
     level = float(loss[tile.core].mean()) if tile.core.any() else 0.0

@@ -317,8 +317,8 @@ def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets:
                                                  detail_scale=float(fill.detail_scales[tile_id]),
                                                  cover_radius=fill.cover_radius)
         jobs.append(TileJob(str(work.store_path), str(work.tile_path(tile_id)), tile_id, tuple(slices[tile_id]),
-                            seen_overlap(config), chunk_cache_bytes(config), budget, reserve, config.method, config.seed,
-                            **surveyed, rule=ClassRule.of(config)))
+                            seen_overlap(config), chunk_cache_bytes(config), budget, reserve, config.method,
+                            config.seed, **surveyed, rule=ClassRule.of(config)))
     return jobs
 
 
