@@ -22,6 +22,9 @@ def cluster(workers: int, memory_limit: str, scheduler: str | None,
     return connect(scheduler) if scheduler else local_cluster(workers, memory_limit)
 
 
+IN_FLIGHT_PER_THREAD = 4  # tasks submitted ahead per worker thread: enough to keep every worker busy
+
+
 def map_tasks(client: Client | None, function: Callable, items: Sequence[Any], *shared: Any, desc: str,
               progress: Progress, weight: Callable[[Any], int] = lambda result: 0) -> list[Any]:
     """function(item, *shared) for every item on the cluster (in item order, in this process, without a
@@ -29,8 +32,11 @@ def map_tasks(client: Client | None, function: Callable, items: Sequence[Any], *
 
     `shared` values become one task each that every task depends on, so a worker fetches them once;
     unlike scattered data, the scheduler can recompute them if the workers holding them die. Tasks
-    of a lost worker are rerun elsewhere (Dask allows 3 losses a task). Progress counts finished tasks
-    and, through `weight`, points per second.
+    of a lost worker are rerun elsewhere (Dask allows 3 losses a task). Tasks are submitted in item
+    order, IN_FLIGHT_PER_THREAD per worker thread ahead of the finished ones, not all at once: the
+    client and scheduler then hold a bounded number of tasks whatever the tile count (all at once, the
+    run's own process grew by about 37 KB a tile, 55 MiB for 1,517 tiles). Progress counts finished
+    tasks and, through `weight`, points per second.
     """
     if client is None:
         return _map_here(function, items, shared, desc, progress, weight)
@@ -38,15 +44,25 @@ def map_tasks(client: Client | None, function: Callable, items: Sequence[Any], *
     from distributed.scheduler import KilledWorker
 
     shared_futures = [client.submit(_same, value, pure=False) for value in shared]
-    futures = [client.submit(function, item, *shared_futures, pure=False) for item in items]
-    position = {future.key: i for i, future in enumerate(futures)}
+    ahead = IN_FLIGHT_PER_THREAD * max(sum(client.nthreads().values()), 1)
+    position: dict[str, int] = {}
     results: list[Any] = [None] * len(items)
+    running = as_completed(loop=client.loop)
+
+    def submit(index: int) -> None:
+        future = client.submit(function, items[index], *shared_futures, pure=False)
+        position[future.key] = index
+        running.add(future)
+
+    for index in range(min(ahead, len(items))):
+        submit(index)
+    submitted = min(ahead, len(items))
     with progress.phase(desc, len(items)) as phase:
-        for future in as_completed(futures):
+        for future in running:
             try:
                 result = future.result()
             except Exception as exc:
-                for pending in futures:
+                for pending in list(running.futures):
                     pending.cancel()
                 if isinstance(exc, PipelineError):
                     raise
@@ -54,8 +70,11 @@ def map_tasks(client: Client | None, function: Callable, items: Sequence[Any], *
                     raise PipelineError(f"{desc}: the workers running one task died again and again, most likely out "
                                         "of memory: raise --memory-limit or lower --max-tile-points") from None
                 raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
-            results[position[future.key]] = result
+            results[position.pop(future.key)] = result
             phase.update(1, weight(result))
+            if submitted < len(items):
+                submit(submitted)
+                submitted += 1
     return results
 
 

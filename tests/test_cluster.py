@@ -88,3 +88,30 @@ def test_an_unreachable_scheduler_is_one_line(scan, tmp_path):
     assert result.returncode == 2
     assert result.stderr.startswith("pipeline: error: tcp://127.0.0.1:") and len(result.stderr.splitlines()) == 1
     assert not (tmp_path / "x.laz").exists()
+
+
+def test_tasks_are_submitted_a_bounded_window_ahead_and_come_back_in_order(scheduler, monkeypatch):
+    """map_tasks keeps at most IN_FLIGHT_PER_THREAD tasks per worker thread unfinished, not every tile's
+    task at once (the run's own process grew by about 37 KB a tile), and returns results in item order."""
+    import operator
+
+    from pipeline import execute
+    from pipeline.progress import Progress
+
+    monkeypatch.setattr(execute, "IN_FLIGHT_PER_THREAD", 2)
+    with Client(scheduler, timeout="60s") as client:
+        submitted = []
+        most_unfinished = [0]
+        submit = client.submit
+
+        def counting_submit(*args, **kwargs):
+            most_unfinished[0] = max(most_unfinished[0], sum(not f.done() for f in submitted[1:]))
+            future = submit(*args, **kwargs)
+            submitted.append(future)
+            return future
+
+        monkeypatch.setattr(client, "submit", counting_submit)
+        items = list(range(200))
+        results = execute.map_tasks(client, operator.sub, items, 7, desc="test", progress=Progress("off"))
+    assert results == [item - 7 for item in items]  # in item order, the shared value passed to each
+    assert 1 <= most_unfinished[0] <= 2 * 2  # two per thread, two single-threaded workers
