@@ -1,6 +1,7 @@
 """Running a run's tasks: on a Dask cluster (pipeline.dask_cluster) or in this process, results in item order."""
 from __future__ import annotations
 
+import time
 from typing import TYPE_CHECKING, Any, Callable, ContextManager, Sequence
 
 from pipeline.errors import PipelineError
@@ -23,6 +24,7 @@ def cluster(workers: int, memory_limit: str, scheduler: str | None,
 
 
 IN_FLIGHT_PER_THREAD = 4  # tasks submitted ahead per worker thread: enough to keep every worker busy
+RECOUNT_SECONDS = 5.0  # how often the window follows the cluster's thread count (workers may join later)
 
 
 def map_tasks(client: Client | None, function: Callable, items: Sequence[Any], *shared: Any, desc: str,
@@ -35,8 +37,9 @@ def map_tasks(client: Client | None, function: Callable, items: Sequence[Any], *
     of a lost worker are rerun elsewhere (Dask allows 3 losses a task). Tasks are submitted in item
     order, IN_FLIGHT_PER_THREAD per worker thread ahead of the finished ones, not all at once: the
     client and scheduler then hold a bounded number of tasks whatever the tile count (all at once, the
-    run's own process grew by about 37 KB a tile, 55 MiB for 1,517 tiles). Progress counts finished
-    tasks and, through `weight`, points per second.
+    run's own process grew by about 37 KB a tile, 55 MiB for 1,517 tiles). The threads are recounted
+    every RECOUNT_SECONDS, so workers that join an adaptive cluster mid-run get work. Progress counts
+    finished tasks and, through `weight`, points per second.
     """
     if client is None:
         return _map_here(function, items, shared, desc, progress, weight)
@@ -44,19 +47,21 @@ def map_tasks(client: Client | None, function: Callable, items: Sequence[Any], *
     from distributed.scheduler import KilledWorker
 
     shared_futures = [client.submit(_same, value, pure=False) for value in shared]
-    ahead = IN_FLIGHT_PER_THREAD * max(sum(client.nthreads().values()), 1)
-    position: dict[str, int] = {}
+    position: dict[str, int] = {}  # the unfinished tasks' item positions, by key
     results: list[Any] = [None] * len(items)
     running = as_completed(loop=client.loop)
+    window = Window(client)
 
-    def submit(index: int) -> None:
-        future = client.submit(function, items[index], *shared_futures, pure=False)
-        position[future.key] = index
-        running.add(future)
+    def top_up(submitted: int) -> int:
+        """Submit the next items until the window is full; return how many are submitted in all."""
+        while submitted < len(items) and len(position) < window.size():
+            future = client.submit(function, items[submitted], *shared_futures, pure=False)
+            position[future.key] = submitted
+            running.add(future)
+            submitted += 1
+        return submitted
 
-    for index in range(min(ahead, len(items))):
-        submit(index)
-    submitted = min(ahead, len(items))
+    submitted = top_up(0)
     with progress.phase(desc, len(items)) as phase:
         for future in running:
             try:
@@ -72,9 +77,7 @@ def map_tasks(client: Client | None, function: Callable, items: Sequence[Any], *
                 raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
             results[position.pop(future.key)] = result
             phase.update(1, weight(result))
-            if submitted < len(items):
-                submit(submitted)
-                submitted += 1
+            submitted = top_up(submitted)
     return results
 
 
@@ -92,6 +95,23 @@ def _map_here(function: Callable, items: Sequence[Any], shared: tuple, desc: str
                 raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
             phase.update(1, weight(results[-1]))
     return results
+
+
+class Window:
+    """How many tasks may be unfinished at once: IN_FLIGHT_PER_THREAD per worker thread of the cluster,
+    recounted every RECOUNT_SECONDS (asking the scheduler costs a round trip)."""
+
+    def __init__(self, client: Client) -> None:
+        self.client = client
+        self.counted_at = -float("inf")
+        self.tasks = IN_FLIGHT_PER_THREAD
+
+    def size(self) -> int:
+        """The current window, in tasks (at least IN_FLIGHT_PER_THREAD, for a cluster between workers)."""
+        if time.monotonic() - self.counted_at >= RECOUNT_SECONDS:
+            self.tasks = IN_FLIGHT_PER_THREAD * max(sum(self.client.nthreads().values()), 1)
+            self.counted_at = time.monotonic()
+        return self.tasks
 
 
 def _same(value: Any) -> Any:

@@ -115,3 +115,23 @@ def test_tasks_are_submitted_a_bounded_window_ahead_and_come_back_in_order(sched
         results = execute.map_tasks(client, operator.sub, items, 7, desc="test", progress=Progress("off"))
     assert results == [item - 7 for item in items]  # in item order, the shared value passed to each
     assert 1 <= most_unfinished[0] <= 2 * 2  # two per thread, two single-threaded workers
+
+
+def test_the_window_grows_when_a_worker_joins_mid_run(scheduler, monkeypatch):
+    """An adaptive cluster adds workers while a run goes on: the window is recounted, so they get tasks."""
+    from pipeline import execute
+
+    monkeypatch.setattr(execute, "RECOUNT_SECONDS", 0.0)
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    with Client(scheduler, timeout="60s") as client:
+        window = execute.Window(client)
+        assert window.size() == execute.IN_FLIGHT_PER_THREAD * 2
+        joining = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", scheduler, "--nthreads", "1",
+                                    "--no-dashboard", "--memory-limit", "1GB"],
+                                   env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        try:
+            client.wait_for_workers(3, timeout=120)
+            assert window.size() == execute.IN_FLIGHT_PER_THREAD * 3
+        finally:
+            joining.terminate()
+            joining.wait(timeout=60)
