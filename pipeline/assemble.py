@@ -36,6 +36,12 @@ class TileResult:
         with np.load(path) as saved:
             return cls(saved["records"], saved["xyz"], saved["whole"], saved["whole_xyz"])
 
+    @staticmethod
+    def load_xyz(path: str | Path) -> np.ndarray:
+        """The (n, 3) candidates' positions only: the seam pass needs no records (they are read once, to write)."""
+        with np.load(path) as saved:
+            return saved["xyz"]
+
 
 def seam_rejections(plan: TilePlan, results: dict[int, str], budgets: np.ndarray, tolerance: float,
                     on_tile: Callable[[], None] = lambda: None) -> dict[int, np.ndarray]:
@@ -44,8 +50,7 @@ def seam_rejections(plan: TilePlan, results: dict[int, str], budgets: np.ndarray
     bands, candidate_counts = [], np.zeros(len(plan.tiles), dtype=np.int64)
     for tile_id, path in sorted(results.items()):
         on_tile()
-        with np.load(path) as saved:  # the candidates' positions only: records are read once, when writing
-            xyz = saved["xyz"]
+        xyz = TileResult.load_xyz(path)
         candidate_counts[tile_id] = len(xyz)
         near = np.flatnonzero(band_mask(xyz, plan.bounds(tile_id), tolerance))
         bands.append(SeamBand(tile_id, near, xyz[near]))

@@ -103,15 +103,17 @@ class Window:
 
     def __init__(self, client: Client) -> None:
         self.client = client
-        self.counted_at = -float("inf")
-        self.tasks = IN_FLIGHT_PER_THREAD
+        self._recount()
 
     def size(self) -> int:
         """The current window, in tasks (at least IN_FLIGHT_PER_THREAD, for a cluster between workers)."""
         if time.monotonic() - self.counted_at >= RECOUNT_SECONDS:
-            self.tasks = IN_FLIGHT_PER_THREAD * max(sum(self.client.nthreads().values()), 1)
-            self.counted_at = time.monotonic()
+            self._recount()
         return self.tasks
+
+    def _recount(self) -> None:
+        self.tasks = IN_FLIGHT_PER_THREAD * max(sum(self.client.nthreads().values()), 1)
+        self.counted_at = time.monotonic()
 
 
 def _same(value: Any) -> Any:

@@ -98,17 +98,18 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     scan = Scan(inputs)
     output = Path(output) if output is not None else default_output(scan.paths[0])
     outputs = written_paths(output, config.levels)
+    kept = target_count(config.ratio, scan.point_count)
     for path in outputs:
         check_output(path, [Path(p) for p in inputs], overwrite, OUTPUT_SUFFIXES)
         if path.name.lower().endswith(COPC_SUFFIX):  # refused now, not after the whole simplification
             try:
-                records = copc_point_format(scan.point_format).size * target_count(config.ratio, scan.point_count)
+                records = copc_point_format(scan.point_format).size * kept
             except PipelineError as exc:
                 raise PipelineError(f"{path}: {exc}") from None
             check_room(path.parent, COPC_SPILL_COPIES * records, "the COPC writer's spill of the kept points",
                        "write .laz, or free space beside the output")
     check_run(scan, config.allow_geographic, Path(scratch or output.parent),
-              kept=int(target_count(config.ratio, scan.point_count) * (1 + RESERVE_SHARE)),
+              kept=int(kept * (1 + RESERVE_SHARE)),
               surveyed=config.method in FILL_LOSSES, progress=progress or Progress())
     unit = length_unit(scan.header)
     settings = output_settings(config)  # what the output records: lengths in metres, as given
