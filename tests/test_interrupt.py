@@ -38,12 +38,12 @@ def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, stop, code,
     out = tmp_path / "out.laz"
     (tmp_path / "here.toml").write_text("[run]\nin_process_points = 1000000\n")  # the 300k patch in this process
     place = ["--config", str(tmp_path / "here.toml")] if where == "in process" else []
-    command = [sys.executable, "-m", "pipeline.cli", "run", str(patch), "-r", "0.1", "-o", str(out), "--tile-size", "4",
+    command = [sys.executable, "-m", "pipeline.cli", "run", str(patch), "-r", "0.1", "-o", str(out), "--tile-size", "2",
                "-w", "2", *place, "-q"]
     run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     while not list(tmp_path.glob(".out.laz.work-*/tile-*.npz")):
         assert run.poll() is None, run.stderr.read()  # still running when the first tile is done
-        time.sleep(0.1)
+        time.sleep(0.02)  # small tiles and a short poll: the simplify phase is far longer than the wait
     os.killpg(run.pid, stop)
     _, stderr = run.communicate(timeout=HANG_GUARD_S)
     assert run.returncode == code, stderr
