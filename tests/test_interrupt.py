@@ -32,6 +32,12 @@ def live_processes(group: int) -> list[str]:
     return [line for line in listing.splitlines() if line.strip() and not line.strip().startswith("Z")]
 
 
+def interruptible() -> None:
+    """Ctrl-C at its default in the run, as a terminal starts a command: a test run launched in the background
+    (`cmd &` in a script) inherits SIGINT ignored, and Python then rightly leaves it ignored."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 @pytest.mark.parametrize("stop, code, where", [(signal.SIGINT, 130, "cluster"), (signal.SIGTERM, 143, "cluster"),
                                               (signal.SIGINT, 130, "in process")])
 def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, stop, code, where):
@@ -40,7 +46,8 @@ def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, stop, code,
     place = ["--config", str(tmp_path / "here.toml")] if where == "in process" else []
     command = [sys.executable, "-m", "pipeline.cli", "run", str(patch), "-r", "0.1", "-o", str(out), "--tile-size", "2",
                "-w", "2", *place, "-q"]
-    run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                           preexec_fn=interruptible)
     while not list(tmp_path.glob(".out.laz.work-*/tile-*.npz")):
         assert run.poll() is None, run.stderr.read()  # still running when the first tile is done
         time.sleep(0.02)  # small tiles and a short poll: the simplify phase is far longer than the wait
