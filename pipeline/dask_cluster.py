@@ -11,6 +11,7 @@ from urllib.parse import urlsplit
 import dask
 from dask.distributed import Client, LocalCluster, WorkerPlugin
 
+from pipeline.allocator import map_large_arrays
 from pipeline.errors import PipelineError
 from pipeline.threads import ONE_THREAD, local_workers
 
@@ -37,7 +38,7 @@ def local_cluster(workers: int, memory_limit: str) -> Iterator[Client]:
                           # no dashboard; the scheduler's health-check server takes a free port, not 8787,
                           # which another run may hold (Dask then warns on stderr, breaking one-line errors)
                           scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cluster, Client(cluster) as client:
-            client.register_plugin(QuietWorkerLogs())
+            client.register_plugin(WorkerSettings())
             yield client
 
 
@@ -58,7 +59,7 @@ def connect(scheduler: str, connect_s: float = 10.0, workers_s: float = 60.0) ->
             client.wait_for_workers(1, timeout=workers_s)
         except TimeoutError as exc:
             raise PipelineError(f"{scheduler}: the Dask scheduler has no workers") from exc
-        client.register_plugin(QuietWorkerLogs())
+        client.register_plugin(WorkerSettings())
         yield client
 
 
@@ -107,8 +108,10 @@ def quiet_dask_logs() -> None:
     logging.getLogger("distributed.scheduler").setLevel(logging.CRITICAL)  # "N workers died running task X": map_tasks says it
 
 
-class QuietWorkerLogs(WorkerPlugin):
-    """Applies quiet_dask_logs in every worker process, including ones started after a worker dies."""
+class WorkerSettings(WorkerPlugin):
+    """Applied in every worker process, including ones started after a worker dies or joins later:
+    quiet_dask_logs, and large arrays mapped whole (pipeline.allocator), so memory stays flat over a run."""
 
     def setup(self, worker: object) -> None:
         quiet_dask_logs()
+        map_large_arrays()
