@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from model.geometry import local_features, roughness
+from model.geometry import FRAME_POINTS, local_features, roughness
 from model.selection import FillLoss, Selection, Tile
 from model.stratified import curvature_loss, stratified_selection
 
@@ -49,15 +49,30 @@ def described(tile: Tile, budget: int, phase: float = 0.5) -> tuple[np.ndarray, 
     kappa, kbar = local.kappa[core], local.mean_curvature[core]
     total = local.eigenvalues.sum(axis=1)
     middle = np.divide(local.eigenvalues[:, 1], total, out=np.zeros(len(total)), where=total > 0)
-    around = local.kappa[nbrs.indices]
     nearest, middle_one, farthest = np.sqrt(nbrs.sq_dist[:, [min(1, nbrs.k - 1), nbrs.k // 2, -1]].astype(np.float64)).T
     far = np.where(farthest > 0, farthest, 1.0)
+    features = np.empty((len(core), DESCRIPTORS), dtype=np.float32)
+    features[:, :4] = np.column_stack([kappa, middle, kbar, roughness(kappa, kbar)])
+    features[:, 4:8] = spread_over_neighbours(local.kappa, local.mean_curvature, nbrs.indices)
+    features[:, 8:10] = np.column_stack([nearest / far, middle_one / far])
+    del local, nbrs  # the neighbour table (38 MB for 200k core points) is gone before the loss is measured
     measured = curvature_loss(tile, budget, phase, here=kbar)
-    columns = [kappa, middle, kbar, roughness(kappa, kbar), around.mean(axis=1), around.std(axis=1),
-               around.max(axis=1), local.mean_curvature[nbrs.indices].std(axis=1),
-               nearest / far, middle_one / far,
-               np.full(len(core), np.log(budget / tile.core_count)), relative(measured)]
-    return np.column_stack(columns).astype(np.float32), float(measured.mean()) if len(measured) else 0.0
+    features[:, 10] = np.log(budget / tile.core_count)
+    features[:, 11] = relative(measured)
+    return features, float(measured.mean()) if len(measured) else 0.0
+
+
+def spread_over_neighbours(kappa: np.ndarray, kbar: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """(m, 4) float32: mean, std and max of kappa and std of mean curvature kbar (both (n,) float32) over
+    each row's neighbours (indices (m, k)); a batch of rows at a time, so the (m, k) gathers never exist
+    whole (a 200k-point tile's are 13 MB each)."""
+    spread = np.empty((len(indices), 4), dtype=np.float32)
+    for start in range(0, len(indices), FRAME_POINTS):
+        rows = slice(start, start + FRAME_POINTS)
+        around = kappa[indices[rows]]
+        spread[rows] = np.column_stack([around.mean(axis=1), around.std(axis=1), around.max(axis=1),
+                                        kbar[indices[rows]].std(axis=1)])
+    return spread
 
 
 def relative(loss: np.ndarray, cap: float = 20.0) -> np.ndarray:
@@ -76,14 +91,19 @@ class DetailWeights:
 
     def predict(self, features: np.ndarray) -> np.ndarray:
         """(n,) float32 predicted relative loss >= 0 of (n, 12) float32 descriptors, as the torch network
-        computes it (float32 throughout; softplus as torch's, linear above 20)."""
-        x = (features - self.shift) / self.spread
-        for number, (weight, bias) in enumerate(self.layers):
-            x = x @ weight.T + bias
-            if number < len(self.layers) - 1:
-                x = np.maximum(x, 0)
-        x = x[:, 0]
-        return np.where(x > SOFTPLUS_LINEAR, x, np.log1p(np.exp(np.minimum(x, SOFTPLUS_LINEAR)))).astype(np.float32)
+        computes it (float32 throughout; softplus as torch's, linear above 20), a batch of rows at a time:
+        a 200k-point tile's hidden layers are 26 MB each."""
+        predicted = np.empty(len(features), dtype=np.float32)
+        for start in range(0, len(features), FRAME_POINTS):
+            rows = slice(start, start + FRAME_POINTS)
+            x = (features[rows] - self.shift) / self.spread
+            for number, (weight, bias) in enumerate(self.layers):
+                x = x @ weight.T + bias
+                if number < len(self.layers) - 1:
+                    x = np.maximum(x, 0)
+            x = x[:, 0]
+            predicted[rows] = np.where(x > SOFTPLUS_LINEAR, x, np.log1p(np.exp(np.minimum(x, SOFTPLUS_LINEAR))))
+        return predicted
 
 
 @lru_cache(maxsize=2)

@@ -13,7 +13,7 @@ from pykdtree.kdtree import KDTree
 
 CHUNK_POINTS = 200_000  # points per batch of the metrics' queries (model/metrics.py, model/sdm.py)
 QUERY_POINTS = 32_768  # points per kd-tree query: its float64 distances and indices are temporaries
-FRAME_POINTS = 32_768  # points per batch of covariances and their eigen solve: ~15 (m, 3, 3) float64 temporaries
+FRAME_POINTS = 8_192  # rows per batch of (m, k) gathers, covariances and eigen solves (~15 (m, 3, 3) float64 temporaries): 32k cost 26 MB more at the same speed
 # (at 200k a batch, a 200k-point tile's survey peaked at 295 MiB traced, and ran 12 % slower)
 NEAR_DOUBLE = 1e-6  # |r| above 1 - this means a nearly repeated eigenvalue: LAPACK instead of the closed form
 ROUND_OFF = 1e-12  # eigenvalues below this share of the trace are solver error (~1e-14 measured): exactly 0
@@ -189,8 +189,12 @@ def mean_curvature(kappa: np.ndarray, nbrs: Neighbours, h: np.ndarray | float) -
     so the denominator never vanishes.
     """
     h = np.broadcast_to(np.asarray(h, dtype=np.float32), (len(nbrs.indices),))
-    weights = np.exp(-nbrs.sq_dist / h[:, None])
-    return (np.einsum("nk,nk->n", kappa[nbrs.indices], weights) / weights.sum(axis=1)).astype(np.float32)
+    kbar = np.empty(len(nbrs.indices), dtype=np.float32)
+    for start in range(0, len(kbar), FRAME_POINTS):  # (m, k) temporaries a batch at a time
+        rows = slice(start, start + FRAME_POINTS)
+        weights = np.exp(-nbrs.sq_dist[rows] / h[rows, None])
+        kbar[rows] = np.einsum("nk,nk->n", kappa[nbrs.indices[rows]], weights) / weights.sum(axis=1)
+    return kbar
 
 
 def roughness(kappa: np.ndarray, kbar: np.ndarray) -> np.ndarray:
