@@ -16,6 +16,7 @@ from pipeline.scoring import DEFAULT_SAMPLE
 from pipeline.scan_summary import format_summary, summarize
 from pipeline.report_region import COLORS, parse_region
 from pipeline.progress import Progress
+from pipeline.stop_guard import STOP_GRACE_S
 
 EXIT_ERROR = 2
 
@@ -132,7 +133,7 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
             return
         note_worker_cap(settings.workers, scheduler)
         report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch,
-                          progress=Progress.for_terminal(quiet, log_json), scheduler=scheduler,
+                          progress=Progress.for_terminal(quiet, log_json), scheduler=scheduler, stop_grace_s=STOP_GRACE_S,
                           note=None if quiet or log_json else lambda line: click.echo(f"pipeline: note: {line}",
                                                                                       err=True))
     except PipelineError as exc:

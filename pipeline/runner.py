@@ -22,6 +22,7 @@ from pipeline.execute import cluster, map_tasks
 from pipeline.output_guard import check_output
 from pipeline.progress import Progress, counted
 from pipeline.scan import Piece, Scan
+from pipeline.stop_guard import StopGuard
 from pipeline.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, simplify_tile, survey_tile
 from pipeline.validate import check_room, check_run
 from pipeline.workdir import WorkDir, output_settings
@@ -82,7 +83,8 @@ def default_output(first_input: Path) -> Path:
 
 def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: RunConfig, overwrite: bool = False,
              scratch: str | Path | None = None, progress: Progress | None = None, scheduler: str | None = None,
-             client: Client | None = None, note: Callable[[str], None] | None = None) -> RunReport:
+             client: Client | None = None, note: Callable[[str], None] | None = None,
+             stop_grace_s: float | None = None) -> RunReport:
     """Simplify one scan (one or more files) to `output`; the Python twin of `pipeline run`.
 
     Lengths in `config` are metres, converted to the scan's horizontal unit (its CRS's: foot, US survey
@@ -91,7 +93,9 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     most `in_process_points` points (the same tasks in line: starting a cluster costs more than it saves),
     else on a fresh local cluster.
     Finished pieces and tiles are kept in a work folder until the output is in place, so the same
-    command re-run after a crash or a kill resumes; any other failure names that folder.
+    command re-run after a crash or a kill resumes; any other failure names that folder. With
+    `stop_grace_s` (the CLI's), an interrupted run whose cluster has not closed within that many seconds
+    ends the process (pipeline.stop_guard).
     """
     clock = PhaseClock()
     config = config.validated()
@@ -122,17 +126,25 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
         remove_stale_temporaries(path)
     work = WorkDir.for_run(output, Path(scratch) if scratch else None, scan.paths, config)
     written = None
+    guard = StopGuard(stop_grace_s) if stop_grace_s is not None else None
     try:
         here = scan.point_count <= config.in_process_points  # tasks in line: no cluster to start (same output)
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here) as active:
-            written, tiles, resumed, kept_whole = simplify_scan(scan, outputs, config, settings, work, active, clock,
-                                                                progress or Progress(), note or (lambda line: None))
+            try:
+                written, tiles, resumed, kept_whole = simplify_scan(scan, outputs, config, settings, work, active, clock,
+                                                                    progress or Progress(), note or (lambda line: None))
+            except KeyboardInterrupt as exc:  # the cluster closes next: bounded, if a guard is asked for
+                if guard is not None:
+                    guard.arm(f"pipeline: {interrupted_line(work)}", signal_exit_code(exc))
+                raise
     except PipelineError as exc:
         if not work.has_results():
             work.remove()
             raise
         raise PipelineError(f"{exc} (finished work kept in {work.path}: re-run the same command to resume)") from exc
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM through the CLI's handler; the cluster is closed by now
+        if guard is not None:
+            guard.cancel()
         raise interrupted(exc, work, output if written is not None else None) from None
     work.remove()
     return RunReport(outputs[0], scan.point_count, written[0], tiles, resumed, clock.total, clock.laps,
@@ -160,9 +172,14 @@ def interrupted(exc: KeyboardInterrupt, work: WorkDir, written: Path | None) -> 
         work.remove()
         return Interrupted(f"interrupted after {written} was written in full; it is kept", code)
     if work.has_results():
-        return Interrupted(f"interrupted; finished work kept in {work.path}: re-run the same command to resume", code)
+        return Interrupted(interrupted_line(work), code)
     work.remove()
     return Interrupted("interrupted before any work finished; nothing was written", code)
+
+
+def interrupted_line(work: WorkDir) -> str:
+    """The one line for a run stopped with finished work in `work`."""
+    return f"interrupted; finished work kept in {work.path}: re-run the same command to resume"
 
 
 def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: dict[str, Any], work: WorkDir,
