@@ -126,16 +126,15 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
         remove_stale_temporaries(path)
     work = WorkDir.for_run(output, Path(scratch) if scratch else None, scan.paths, config)
     written = None
-    guard = StopGuard(stop_grace_s) if stop_grace_s is not None else None
+    guard = StopGuard(stop_grace_s)
     try:
         here = scan.point_count <= config.in_process_points  # tasks in line: no cluster to start (same output)
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here) as active:
             try:
                 written, tiles, resumed, kept_whole = simplify_scan(scan, outputs, config, settings, work, active, clock,
                                                                     progress or Progress(), note or (lambda line: None))
-            except KeyboardInterrupt as exc:  # the cluster closes next: bounded, if a guard is asked for
-                if guard is not None:
-                    guard.arm(f"pipeline: {interrupted_line(work)}", signal_exit_code(exc))
+            except KeyboardInterrupt as exc:  # the cluster closes next: bounded, if a grace is given
+                guard.arm(f"pipeline: {interrupted_line(work)}", signal_exit_code(exc))
                 raise
     except PipelineError as exc:
         if not work.has_results():
@@ -143,8 +142,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
             raise
         raise PipelineError(f"{exc} (finished work kept in {work.path}: re-run the same command to resume)") from exc
     except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM through the CLI's handler; the cluster is closed by now
-        if guard is not None:
-            guard.cancel()
+        guard.cancel()
         raise interrupted(exc, work, output if written is not None else None) from None
     work.remove()
     return RunReport(outputs[0], scan.point_count, written[0], tiles, resumed, clock.total, clock.laps,

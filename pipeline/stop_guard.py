@@ -17,15 +17,18 @@ STOP_GRACE_S = 30.0  # a cluster closes in 0.4-2 s; far longer means it will not
 
 class StopGuard:
     """Armed when a run is interrupted, cancelled once the cluster has closed; if that takes longer than
-    `grace_s`, prints `line` on stderr and ends the process with `code` (no clean-up: the work folder stays)."""
+    `grace_s`, prints `line` on stderr and ends the process with `code` (no clean-up: the work folder stays).
+    With `grace_s` None it never arms (a notebook's process is not ours to end)."""
 
-    def __init__(self, grace_s: float = STOP_GRACE_S) -> None:
+    def __init__(self, grace_s: float | None = STOP_GRACE_S) -> None:
         self.grace_s = grace_s
         self._timer: threading.Timer | None = None
 
     def arm(self, line: str, code: int) -> None:
         """Start the countdown (a daemon thread: it never holds the process open)."""
         self.cancel()
+        if self.grace_s is None:
+            return
         self._timer = threading.Timer(self.grace_s, _end_now, args=(line, code))
         self._timer.daemon = True
         self._timer.start()
