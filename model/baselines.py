@@ -4,7 +4,7 @@ from __future__ import annotations
 import fpsample
 import numpy as np
 
-from model.geometry import curvature, knn, local_frames
+from model.geometry import curvature, knn, local_eigenvalues
 from model.selection import Selection, Tile, kept_count, topped_up
 
 FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core
@@ -161,7 +161,7 @@ def tcp_simplify(tile: Tile, budget: int) -> Selection:
     budget = min(budget, tile.core_count)
     if budget == 0:
         return Selection.of(tile, np.empty(0, dtype=np.int64))
-    eigenvalues, _ = local_frames(tile.xyz, knn(tile.xyz))
+    eigenvalues = local_eigenvalues(tile.xyz, knn(tile.xyz))
     core = np.random.default_rng(tile.seed).permutation(np.flatnonzero(tile.core))
     order = core[np.argsort(-curvature(eigenvalues)[core], kind="stable")]
     return Selection.of(tile, order[:budget])

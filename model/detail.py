@@ -44,7 +44,7 @@ def described(tile: Tile, budget: int, phase: float = 0.5) -> tuple[np.ndarray, 
     is read against. The halo serves as neighbours only (model.geometry.local_features), so neither its
     width nor its own losses change what the core is told."""
     core = np.flatnonzero(tile.core)
-    local = local_features(tile.xyz, core, NEIGHBOURS)
+    local = local_features(tile.xyz, core, NEIGHBOURS, tile.core_order)
     nbrs = local.nbrs
     kappa, kbar = local.kappa[core], local.mean_curvature[core]
     total = local.eigenvalues.sum(axis=1)

@@ -2,9 +2,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Protocol
 
 import numpy as np
+
+from model.geometry import morton_order
 
 
 @dataclass(frozen=True)
@@ -52,6 +55,17 @@ class Tile:
     def core_count(self) -> int:
         """How many points the tile owns."""
         return int(self.core.sum())
+
+    @cached_property
+    def core_order(self) -> np.ndarray:
+        """(c,) the order of the core points (np.flatnonzero(core)) along a Z-order curve: worked out once,
+        for the survey's queries, its trial fills and the fill (each a sort of every core point)."""
+        return morton_order(self.xyz[self.core])
+
+    @property
+    def curve(self) -> np.ndarray:
+        """(c,) indices of the core points, in tile order, along the Z-order curve."""
+        return np.flatnonzero(self.core)[self.core_order]
 
 
 @dataclass(frozen=True)

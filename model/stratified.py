@@ -25,7 +25,7 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 from scipy.spatial import cKDTree
 
-from model.geometry import local_features, morton_order, point_features
+from model.geometry import local_features
 from model.metrics import nearest
 from model.selection import FillContext, FillLoss, Selection, Tile, topped_up
 
@@ -73,7 +73,7 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf) -> Selection:
         return Selection.of(tile, np.empty(0, dtype=np.int64))
     planned = budget if context is None or context.kept is None else min(budget, context.kept)
     core = np.flatnonzero(tile.core)
-    curve = core[morton_order(tile.xyz[core])]  # core points along a Z-order curve
+    curve = tile.curve
     rng = np.random.default_rng(tile.seed)
     phase = rng.random()
     weights = fill_weights(loss_of(tile, planned), 1.0) if context is None else fill_weights(context.loss,
@@ -123,8 +123,7 @@ def pick_spacings(tile: Tile, budget: int, loss: FillLoss) -> np.ndarray:
     budget = min(budget, tile.core_count)
     if budget < 2:
         return np.empty(0)
-    core = np.flatnonzero(tile.core)
-    curve = core[morton_order(tile.xyz[core])]
+    curve = tile.curve
     picks = tile.xyz[weighted_picks(curve, curve_of(fill_weights(loss, 1.0), curve), budget, 0.5)]
     distance, _ = KDTree(np.ascontiguousarray(picks, dtype=np.float64)).query(picks, k=2)
     return np.quantile(distance[:, 1], SPACING_QUANTILES)
@@ -136,9 +135,9 @@ def curvature_loss(tile: Tile, budget: int, phase: float = 0.5, here: np.ndarray
     compares (K' on the thinned cloud). It is what CE adds up, point by point, for that thinning. `here`:
     the core's own K (c,), if already known."""
     core = np.flatnonzero(tile.core)
-    fill = systematic_picks(core[morton_order(tile.xyz[core])], budget, phase)
-    here = local_features(tile.xyz, core).mean_curvature[core] if here is None else here
-    thinned = point_features(tile.xyz[fill]).mean_curvature
+    fill = systematic_picks(tile.curve, budget, phase)
+    here = local_features(tile.xyz, core, order=tile.core_order).mean_curvature[core] if here is None else here
+    thinned = local_features(tile.xyz[fill], np.arange(len(fill))).mean_curvature  # point_features' values, no normals
     return np.abs(here - thinned[nearest(tile.xyz[fill], tile.xyz[core]).index])
 
 

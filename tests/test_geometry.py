@@ -7,6 +7,7 @@ from model.geometry import (
     bandwidth,
     curvature,
     knn,
+    local_eigenvalues,
     local_features,
     local_frames,
     morton_order,
@@ -100,6 +101,7 @@ def test_local_frames_match_lapack_on_every_kind_of_neighbourhood():
     distinct = (reference[:, 1] - reference[:, 0]) > 1e-3 * scale[:, 0]  # where the normal is well defined
     agreement = np.abs(np.einsum("ij,ij->i", normals, frames[:, :, 0]))
     assert agreement[distinct].min() > 1 - 1e-6
+    np.testing.assert_array_equal(local_eigenvalues(xyz, nbrs), eigenvalues)  # the survey's path, without normals
 
 
 def test_chunking_does_not_change_features(monkeypatch):
