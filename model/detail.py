@@ -16,6 +16,7 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
+from pykdtree.kdtree import KDTree
 
 from model.geometry import FRAME_POINTS, local_features, roughness
 from model.selection import FillLoss, Selection, Tile
@@ -26,6 +27,7 @@ SOFTPLUS_LINEAR = 20.0  # torch's softplus returns its input above this
 DESCRIPTORS = 12
 HIDDEN = 32
 NEIGHBOURS = 16
+SURVEY_BLOCK = 32_768  # core rows described at a time: a tile's (rows, 16) neighbour tables never exist whole
 
 
 def descriptors(tile: Tile, budget: int, phase: float = 0.5) -> np.ndarray:
@@ -42,24 +44,38 @@ def described(tile: Tile, budget: int, phase: float = 0.5) -> tuple[np.ndarray, 
     scale; by rotation too, but for the measured loss (the Morton curve, so the thinning measured, turns
     with the axes). Also the measured loss's core mean (K units): the scale that the relative prediction
     is read against. The halo serves as neighbours only (model.geometry.local_features), so neither its
-    width nor its own losses change what the core is told."""
+    width nor its own losses change what the core is told. The core is described SURVEY_BLOCK points at a
+    time, along the Z-order curve (a 200k-point tile's survey peaked at 73 MiB traced whole): the values
+    are those of one pass."""
     core = np.flatnonzero(tile.core)
-    local = local_features(tile.xyz, core, NEIGHBOURS, tile.core_order)
-    nbrs = local.nbrs
-    kappa, kbar = local.kappa[core], local.mean_curvature[core]
-    total = local.eigenvalues.sum(axis=1)
-    middle = np.divide(local.eigenvalues[:, 1], total, out=np.zeros(len(total)), where=total > 0)
-    nearest, middle_one, farthest = np.sqrt(nbrs.sq_dist[:, [min(1, nbrs.k - 1), nbrs.k // 2, -1]].astype(np.float64)).T
-    far = np.where(farthest > 0, farthest, 1.0)
+    xyz = np.ascontiguousarray(tile.xyz, dtype=np.float64)
+    tree = KDTree(xyz)
     features = np.empty((len(core), DESCRIPTORS), dtype=np.float32)
-    features[:, :4] = np.column_stack([kappa, middle, kbar, roughness(kappa, kbar)])
-    features[:, 4:8] = spread_over_neighbours(local.kappa, local.mean_curvature, nbrs.indices)
-    features[:, 8:10] = np.column_stack([nearest / far, middle_one / far])
-    del local, nbrs  # the neighbour table (38 MB for 200k core points) is gone before the loss is measured
+    kbar = np.empty(len(core), dtype=np.float32)
+    for block in np.array_split(tile.core_order, -(-len(core) // SURVEY_BLOCK)) if len(core) else []:
+        features[block], kbar[block] = described_rows(xyz, core[block], tree)
     measured = curvature_loss(tile, budget, phase, here=kbar)
     features[:, 10] = np.log(budget / tile.core_count)
     features[:, 11] = relative(measured)
     return features, float(measured.mean()) if len(measured) else 0.0
+
+
+def described_rows(xyz: np.ndarray, rows: np.ndarray, tree: KDTree) -> tuple[np.ndarray, np.ndarray]:
+    """(m, 12) float32 descriptors of xyz[rows] but for the last two (set by described), and their mean
+    curvature (m,) float32; `tree` holds xyz (n, 3) float64. Rows in curve order, so the rings of
+    neighbours beyond them (queried again by the next block) are a thin border."""
+    local = local_features(xyz, rows, NEIGHBOURS, np.arange(len(rows)), tree)
+    nbrs = local.nbrs
+    kappa, kbar = local.kappa[rows], local.mean_curvature[rows]
+    total = local.eigenvalues.sum(axis=1)
+    middle = np.divide(local.eigenvalues[:, 1], total, out=np.zeros(len(total)), where=total > 0)
+    nearest, middle_one, farthest = np.sqrt(nbrs.sq_dist[:, [min(1, nbrs.k - 1), nbrs.k // 2, -1]].astype(np.float64)).T
+    far = np.where(farthest > 0, farthest, 1.0)
+    features = np.zeros((len(rows), DESCRIPTORS), dtype=np.float32)
+    features[:, :4] = np.column_stack([kappa, middle, kbar, roughness(kappa, kbar)])
+    features[:, 4:8] = spread_over_neighbours(local.kappa, local.mean_curvature, nbrs.indices)
+    features[:, 8:10] = np.column_stack([nearest / far, middle_one / far])
+    return features, kbar
 
 
 def spread_over_neighbours(kappa: np.ndarray, kbar: np.ndarray, indices: np.ndarray) -> np.ndarray:

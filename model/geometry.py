@@ -277,16 +277,18 @@ class LocalFeatures:
     mean_curvature: np.ndarray  # (n,) float32: set on the rows and their neighbours, else 0
 
 
-def local_features(xyz: np.ndarray, rows: np.ndarray, k: int = 16, order: np.ndarray | None = None) -> LocalFeatures:
+def local_features(xyz: np.ndarray, rows: np.ndarray, k: int = 16, order: np.ndarray | None = None,
+                   tree: KDTree | None = None) -> LocalFeatures:
     """Features of xyz[rows] as point_features gives them on the whole cloud, querying only the rows and the
     two rings of neighbours their mean curvature and its spread reach: a tile's halo is there as
     neighbours, and most of a fixed-width halo lies beyond those rings on a dense scan. `order`:
-    morton_order(xyz[rows]), if the caller has it."""
+    a good query order of the rows (morton_order(xyz[rows])), if the caller has one; `tree`: a kd-tree of
+    xyz (float64), if the caller has one."""
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     if len(rows) == 0:
         empty = Neighbours(np.empty((0, min(k, len(xyz))), dtype=np.int64), np.empty((0, min(k, len(xyz))), np.float32))
         return LocalFeatures(empty, np.empty((0, 3)), np.zeros(len(xyz), np.float32), np.zeros(len(xyz), np.float32))
-    tree = KDTree(xyz)
+    tree = KDTree(xyz) if tree is None else tree
     queried = np.zeros(len(xyz), dtype=bool)
     kappa = np.zeros(len(xyz), dtype=np.float32)
     found: list[tuple[np.ndarray, Neighbours]] = []  # the rows and the first ring, with their neighbours

@@ -70,7 +70,7 @@ def test_descriptors_of_a_core_do_not_depend_on_the_halo_beyond_its_neighbours()
 
 def test_descriptors_and_prediction_do_not_depend_on_the_row_batches(monkeypatch):
     """Descriptors and the prediction are made a batch of rows at a time (memory); rows of 777 instead of
-    8,192 give the same descriptors, and predictions equal to float32 round-off (the matrix products'
+    8,192, and core blocks of 1,000 instead of 32,768, give the same descriptors, and predictions equal to float32 round-off (the matrix products'
     BLAS kernels may sum in another order for another batch shape)."""
     import model.detail
     import model.geometry
@@ -80,7 +80,9 @@ def test_descriptors_and_prediction_do_not_depend_on_the_row_batches(monkeypatch
     whole, prediction = descriptors(tile, 4_000), weights.predict(descriptors(tile, 4_000))
     for module in (model.geometry, model.detail):
         monkeypatch.setattr(module, "FRAME_POINTS", 777)
+    monkeypatch.setattr(model.detail, "SURVEY_BLOCK", 1_000)  # blocks of core points, each with its own rings
     batched = descriptors(tile, 4_000)
+    assert tile.core_count > 5_000
     np.testing.assert_array_equal(batched, whole)
     np.testing.assert_allclose(weights.predict(batched), prediction, rtol=1e-6)
 
