@@ -65,8 +65,9 @@ def neighbours(tree: KDTree, xyz: np.ndarray, rows: np.ndarray, k: int, order: n
     """The k nearest of the (n, 3) float64 points `tree` holds (`xyz`) to each of xyz[rows]: (len(rows), k).
 
     Queries go in Morton order (`order`, morton_order(xyz[rows]), if the caller has it) so consecutive
-    ones walk the same nodes (700k shuffled points: 7.0 s in input order, 1.6 s with the sort). Among exact duplicates the tree may list a twin before the point
-    itself; such rows are fixed so column 0 is always the point.
+    ones walk the same nodes (700k shuffled points: 7.0 s in input order, 1.6 s with the sort). Among
+    exact duplicates the tree may list a twin before the point itself; such rows are fixed so column 0
+    is always the point.
     """
     k = min(k, len(xyz))
     indices = np.empty((len(rows), k), dtype=np.int64)
@@ -128,9 +129,9 @@ def _covariances(xyz: np.ndarray, nbrs: Neighbours, rows: np.ndarray) -> Iterato
 
     Offsets d = p_j - p_i are formed in float64, so they stay small wherever the origin is, and the
     entries stay float64 (float32 LAPACK erred by ~5e-8 in kappa, ten times the whole kappa of a patch
-    whose noise is 1e-4 of its extent); each
-    coordinate is gathered into its own (m, k) plane and the six entries summed over k (2.4x faster
-    than a batched (3, k) @ (k, 3) product, equal to it within 1e-15 relative)."""
+    whose noise is 1e-4 of its extent). Each coordinate is gathered into its own (m, k) plane and the
+    six entries summed over k: 2.4x faster than a batched (3, k) @ (k, 3) product, equal to it within
+    1e-15 relative."""
     planes = np.ascontiguousarray(np.asarray(xyz, dtype=np.float64).T)  # (3, n)
     buffer = np.empty((3, min(len(rows), FRAME_POINTS), nbrs.k))  # reused: fresh pages per batch cost more than the maths
     for start in range(0, len(rows), FRAME_POINTS):
