@@ -62,9 +62,10 @@ class Tile:
         for the survey's queries, its trial fills and the fill (each a sort of every core point)."""
         return morton_order(self.xyz[self.core])
 
-    @property
+    @cached_property
     def curve(self) -> np.ndarray:
-        """(c,) indices of the core points, in tile order, along the Z-order curve."""
+        """(c,) indices of the core points, in tile order, along the Z-order curve (the survey's trial fills
+        and the fill each walk it)."""
         return np.flatnonzero(self.core)[self.core_order]
 
 

@@ -70,8 +70,9 @@ def test_descriptors_of_a_core_do_not_depend_on_the_halo_beyond_its_neighbours()
 
 def test_descriptors_and_prediction_do_not_depend_on_the_row_batches(monkeypatch):
     """Descriptors and the prediction are made a batch of rows at a time (memory); rows of 777 instead of
-    8,192, and core blocks of 1,000 instead of 32,768, give the same descriptors, and predictions equal to float32 round-off (the matrix products'
-    BLAS kernels may sum in another order for another batch shape)."""
+    8,192, and core blocks of 1,000 instead of 32,768, give the same descriptors, and predictions equal
+    to float32 round-off (the matrix products' BLAS kernels may sum in another order for another batch
+    shape)."""
     import model.detail
     import model.geometry
 
