@@ -6,6 +6,7 @@ import io
 import os
 import sys
 import tempfile
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -73,14 +74,19 @@ def open_las(path: Path) -> laspy.LasReader:
     return laspy.open(source, laz_backend=laspy.LazBackend.Lazrs)
 
 
+FD2_REDIRECTED = threading.Lock()  # fd 2 belongs to the whole process: one decode at a time redirects it
+
+
 @contextmanager
 def native_panics_silenced() -> Iterator[None]:
     """Send fd 2 to a temporary file while lazrs decodes: a Rust panic prints a many-line report there
-    before laspy raises PanicException. The report is dropped on a panic and replayed otherwise."""
-    sys.stderr.flush()
-    saved = os.dup(2)
-    panicked = False
-    with tempfile.TemporaryFile() as capture:
+    before laspy raises PanicException. The report is dropped on a panic and replayed otherwise.
+    Decodes on other threads of the process (an in-process run) wait: interleaved, one thread's restore
+    would leave fd 2 on another's temporary file."""
+    with FD2_REDIRECTED, tempfile.TemporaryFile() as capture:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        panicked = False
         os.dup2(capture.fileno(), 2)
         try:
             yield

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import time
+from concurrent.futures import Executor
 from contextlib import nullcontext
 from dataclasses import dataclass
 from importlib.metadata import version
@@ -90,8 +91,8 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     Lengths in `config` are metres, converted to the scan's horizontal unit (its CRS's: foot, US survey
     foot, ...); `note` hears that once, or that metres were assumed for lack of a CRS.
     Runs on `client` if given, else on the cluster at `scheduler`, else in this process for a scan of at
-    most `in_process_points` points (the same tasks in line: starting a cluster costs more than it saves),
-    else on a fresh local cluster.
+    most `in_process_points` points (the same tasks on `workers` threads: starting a cluster costs more
+    than it saves), else on a fresh local cluster.
     Finished pieces and tiles are kept in a work folder until the output is in place, so the same
     command re-run after a crash or a kill resumes; any other failure names that folder. With
     `stop_grace_s` (the CLI's), an interrupted run whose cluster has not closed within that many seconds
@@ -128,7 +129,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     written = None
     guard = StopGuard(stop_grace_s)
     try:
-        here = scan.point_count <= config.in_process_points  # tasks in line: no cluster to start (same output)
+        here = scan.point_count <= config.in_process_points  # tasks on threads: no cluster to start (same output)
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here) as active:
             try:
                 written, tiles, resumed, kept_whole = simplify_scan(scan, outputs, config, settings, work, active, clock,
@@ -181,7 +182,7 @@ def interrupted_line(work: WorkDir) -> str:
 
 
 def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: dict[str, Any], work: WorkDir,
-                  client: Client | None, clock: "PhaseClock", progress: Progress,
+                  client: Client | Executor, clock: "PhaseClock", progress: Progress,
                   note: Callable[[str], None]) -> tuple[list[int], int, int, int]:
     """Bucket, plan, simplify every tile on the cluster, stitch and write each level; return points written
     per output, tiles, tiles found finished by an earlier attempt, and points kept whole."""
@@ -210,7 +211,8 @@ def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: 
     jobs = make_jobs(work, plan, slices, budgets, whole, config, fill)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]
     map_tasks(client, simplify_tile, pending, plan, desc="simplify", progress=progress,
-              weight=lambda outcome: outcome.points)
+              weight=lambda outcome: outcome.points,
+              cost=lambda job: plan.tiles[job.tile_id].count)
     clock.lap("simplify tiles")
     results = {job.tile_id: job.result_path for job in jobs}
     with progress.phase("resolve seams", len(results), unit="tile") as phase:
@@ -247,7 +249,7 @@ class PhaseClock:
         self._last = now
 
 
-def bucket_scan(client: Client | None, scan: Scan, pieces: list[Piece], work: WorkDir, config: RunConfig, rule: ClassRule,
+def bucket_scan(client: Client | Executor, scan: Scan, pieces: list[Piece], work: WorkDir, config: RunConfig, rule: ClassRule,
                 progress: Progress) -> tuple[TilePlan, list[list[Slice]], np.ndarray, np.ndarray]:
     """The one streamed pass: pieces stored sorted by grid cell (those an earlier attempt finished are
     reused); then the plan from the summed density, each tile's core+halo as row slices of the pieces,
@@ -289,7 +291,7 @@ class ScanFill:
     cover_radius: float
 
 
-def survey_scan(client: Client | None, plan: TilePlan, slices: list[list[Slice]], work: WorkDir, config: RunConfig,
+def survey_scan(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], work: WorkDir, config: RunConfig,
                 target: int, progress: Progress) -> tuple[list[TileSurvey], np.ndarray]:
     """Every tile's survey (those an earlier attempt finished are read back) and the voxel sizes (levels,)
     around the spacing `target` points give the scan, at which each counted its occupied voxels."""
@@ -302,7 +304,8 @@ def survey_scan(client: Client | None, plan: TilePlan, slices: list[list[Slice]]
             for tile_id in range(len(plan.tiles))]
     pending = [job for job in jobs if not Path(job.survey_path).is_file()]
     fresh = dict(zip((job.tile_id for job in pending),
-                     map_tasks(client, survey_tile, pending, plan, desc="survey tiles", progress=progress)))
+                     map_tasks(client, survey_tile, pending, plan, desc="survey tiles", progress=progress,
+                               cost=lambda job: plan.tiles[job.tile_id].count)))
     surveys = [fresh[job.tile_id] if job.tile_id in fresh else load_survey(Path(job.survey_path)) for job in jobs]
     return surveys, np.array(sizes)
 

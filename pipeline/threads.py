@@ -1,9 +1,10 @@
-"""Threads and cores: how many workers this machine can run, and running tasks in this process with one
-thread each for BLAS, OpenMP and torch, as a Dask worker does."""
+"""Threads and cores: how many workers this machine can run, and running tasks on threads of this process
+with one thread each for BLAS, OpenMP and torch, as a Dask worker does."""
 from __future__ import annotations
 
 import os
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Iterator
 
@@ -24,18 +25,24 @@ def local_workers(requested: int) -> int:
 
 
 @contextmanager
-def in_process() -> Iterator[None]:
-    """Run tasks in this process, one at a time, with BLAS, OpenMP and torch held to one thread as in a
-    worker, so the output equals a cluster run's byte for byte; threads are given back afterwards."""
+def in_process(threads: int = 1) -> Iterator[ThreadPoolExecutor]:
+    """A pool of `threads` task threads in this process, BLAS, OpenMP and torch held to one thread each as
+    in a worker, so the output equals a cluster run's byte for byte; they are given back afterwards.
+
+    Leaving it (also on an error or Ctrl-C) cancels the tasks not started and waits for the running ones:
+    at most one tile each, and none writes after the run has said what it kept."""
     saved = {name: os.environ.get(name) for name in ONE_THREAD}
     os.environ.update(ONE_THREAD)  # read by torch if a task imports it for the first time
     torch = sys.modules.get("torch")
-    threads = torch.get_num_threads() if torch is not None else available_cores()
+    torch_threads = torch.get_num_threads() if torch is not None else available_cores()
     if torch is not None:
         torch.set_num_threads(1)
     try:
-        with threadpool_limits(limits=1):
-            yield None
+        with threadpool_limits(limits=1), ThreadPoolExecutor(threads, thread_name_prefix="pipeline-task") as pool:
+            try:
+                yield pool
+            finally:
+                pool.shutdown(cancel_futures=True)
     finally:
         for name, value in saved.items():
             if value is None:
@@ -43,4 +50,4 @@ def in_process() -> Iterator[None]:
             else:
                 os.environ[name] = value
         if "torch" in sys.modules:
-            sys.modules["torch"].set_num_threads(threads)
+            sys.modules["torch"].set_num_threads(torch_threads)

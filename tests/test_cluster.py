@@ -117,6 +117,40 @@ def test_tasks_are_submitted_a_bounded_window_ahead_and_come_back_in_order(sched
     assert 1 <= most_unfinished[0] <= 2 * 2  # two per thread, two single-threaded workers
 
 
+def test_costly_tasks_go_first_and_every_worker_holds_the_shared_values(scheduler, monkeypatch):
+    """Items costlier than the mean are submitted first (a dominant tile must not run alone at a phase's
+    end), and the shared values are on every worker before any task starts (a worker busy with a task is
+    slow to send them: the other one sat idle); results still come back in item order."""
+    from pipeline import execute
+    from pipeline.progress import Progress
+
+    def shared_value_holders(item: int, shared: str) -> tuple[int, int]:
+        """The item, and how many workers hold the shared values as it starts (defined here: sent by value)."""
+        from distributed import get_client
+
+        counts = get_client().run_on_scheduler(
+            lambda dask_scheduler: [len(task.who_has or ()) for key, task in dask_scheduler.tasks.items()
+                                    if str(key).startswith("_same-")])
+        return item, min(counts)
+
+    with Client(scheduler, timeout="60s") as client:
+        submitted = []
+        submit = client.submit
+
+        def recording_submit(function, *args, **kwargs):
+            if function is shared_value_holders:
+                submitted.append(args[0])
+            return submit(function, *args, **kwargs)
+
+        monkeypatch.setattr(client, "submit", recording_submit)
+        costs = [1, 9, 2, 8, 1, 1]
+        results = execute.map_tasks(client, shared_value_holders, list(range(6)), "plan", desc="test",
+                                    progress=Progress("off"), cost=lambda item: costs[item])
+    assert submitted == [1, 3, 0, 2, 4, 5]
+    assert [item for item, _ in results] == list(range(6))
+    assert all(holders == 2 for _, holders in results)
+
+
 def test_the_window_grows_when_a_worker_joins_mid_run(scheduler, monkeypatch):
     """An adaptive cluster adds workers while a run goes on: the window is recounted, so they get tasks."""
     from pipeline import execute

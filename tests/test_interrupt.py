@@ -42,10 +42,10 @@ def interruptible() -> None:
                                               (signal.SIGINT, 130, "in process")])
 def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, stop, code, where):
     out = tmp_path / "out.laz"
-    (tmp_path / "here.toml").write_text("[run]\nin_process_points = 1000000\n")  # the 300k patch in this process
-    place = ["--config", str(tmp_path / "here.toml")] if where == "in process" else []
+    here = 1_000_000 if where == "in process" else 0  # the 300k patch on this process's threads, or on a cluster
+    (tmp_path / "place.toml").write_text(f"[run]\nin_process_points = {here}\n")
     command = [sys.executable, "-m", "pipeline.cli", "run", str(patch), "-r", "0.1", "-o", str(out), "--tile-size", "2",
-               "-w", "2", *place, "-q"]
+               "-w", "2", "--config", str(tmp_path / "place.toml"), "-q"]
     run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                            preexec_fn=interruptible)
     while not list(tmp_path.glob(".out.laz.work-*/tile-*.npz")):

@@ -7,6 +7,7 @@ piece order, which keeps a tile's points in file order whatever worker wrote the
 from __future__ import annotations
 
 import json
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
@@ -48,21 +49,24 @@ class ChunkCache:
         self._arrays: OrderedDict[tuple[str, int, int], np.ndarray] = OrderedDict()
         self._bytes = 0
         self.reads = 0  # chunks read from the store by this process (a cache miss each)
+        self._lock = threading.Lock()  # an in-process run's task threads share the cache
 
     def get(self, key: tuple[str, int, int], budget: int, read: Callable[[], np.ndarray]) -> np.ndarray:
         """The cached chunk, or read it and cache it if it fits the budget (evicting older chunks)."""
-        if key in self._arrays:
-            self._arrays.move_to_end(key)
-            return self._arrays[key]
-        for stale in [k for k in self._arrays if k[0] != key[0]]:  # chunks of an earlier run in this process
-            self._drop(stale)
-        array = read()
-        self.reads += 1
-        if array.nbytes <= budget:
-            while self._arrays and self._bytes + array.nbytes > budget:
-                self._drop(next(iter(self._arrays)))
-            self._arrays[key] = array
-            self._bytes += array.nbytes
+        with self._lock:
+            if key in self._arrays:
+                self._arrays.move_to_end(key)
+                return self._arrays[key]
+            for stale in [k for k in self._arrays if k[0] != key[0]]:  # chunks of an earlier run in this process
+                self._drop(stale)
+        array = read()  # outside the lock: two threads may read one chunk at once, never wait for each other
+        with self._lock:
+            self.reads += 1
+            if key not in self._arrays and array.nbytes <= budget:
+                while self._arrays and self._bytes + array.nbytes > budget:
+                    self._drop(next(iter(self._arrays)))
+                self._arrays[key] = array
+                self._bytes += array.nbytes
         return array
 
     def _drop(self, key: tuple[str, int, int]) -> None:
