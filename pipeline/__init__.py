@@ -34,7 +34,8 @@ def run(inputs: str | Path | Sequence[str | Path], output: str | Path | None = N
     thin_classes=(2,), ...) override it, as CLI flags do; with `levels`, `ratio` may be left out.
     `progress` shows bars at a terminal, else a line every 10 s on stderr.
     `client` reuses the caller's Dask client (no cluster started); `scheduler` (tcp://host:port) runs on
-    an existing Dask cluster; otherwise a local cluster is started for the call.
+    an existing Dask cluster; otherwise a scan of at most `in_process_points` (1M) points runs on `workers`
+    threads of this process, and a larger one on a local cluster started for the call.
     """
     from pipeline.progress import Progress
     from pipeline.runner import run_scan

@@ -1,6 +1,7 @@
 """`pipeline run`: read -> plan -> bucket -> simplify tiles on Dask -> stitch -> write, in bounded memory."""
 from __future__ import annotations
 
+import math
 import time
 from concurrent.futures import Executor
 from contextlib import nullcontext
@@ -195,6 +196,8 @@ def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: 
     for code in (*rule.keep, *rule.thin):
         if classes[code] == 0:
             note(f"class {code} has no points in the scan")
+    if said := crowded_cells_note(plan, config.max_tile_points, settings["tile_size"]):
+        note(said)
     clock.lap("read and bucket")
     counts = np.array([t.count for t in plan.tiles], dtype=np.int64) - whole  # the points to thin
     target = target_count(config.ratio, int(counts.sum()))
@@ -228,6 +231,19 @@ def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: 
             written.append(write_output(path, scan.header, int(level.sum() + whole.sum()), parts, meta))
     clock.lap("stitch and write")
     return written, len(jobs), len(jobs) - len(pending), int(whole.sum())
+
+
+def crowded_cells_note(plan: TilePlan, max_points: int, tile_size_m: float) -> str | None:
+    """Say so when grid cells (tile size / 8) hold more than max_points: the plan never splits a cell, so
+    such a tile's task needs memory for all of its points (a terrestrial scanner's standpoint does this);
+    the tile size that would split them, were the points spread evenly over the cell."""
+    crowded = [tile.count for tile in plan.tiles if tile.count > max_points]
+    if not crowded:
+        return None
+    smaller = tile_size_m * math.sqrt(max_points / max(crowded))
+    return (f"{len(crowded)} grid cell(s) hold more than --max-tile-points ({max_points:,}) points, up to "
+            f"{max(crowded):,}: a cell is never split, so each is one tile and its task needs memory for all of "
+            f"them; a --tile-size of about {smaller:.2g} m or less would split them")
 
 
 class PhaseClock:

@@ -200,3 +200,27 @@ def test_two_sites_far_apart_run_in_tiles_within_the_budget(tmp_path):
     report = pipeline.run(tmp_path / "sites.las", tmp_path / "out.las", ratio=0.1, method="fps", max_tile_points=5_000,
                           workers=1)
     assert report.output_points == 4_000 and report.tiles >= 8  # 40k points: at least 8 tiles of <= 5k
+
+
+def test_a_cell_over_the_tile_limit_is_named_with_the_tile_size_that_splits_it(tmp_path):
+    """A plan never splits a grid cell (tile size / 8): a scanner's standpoint can put more than
+    --max-tile-points into one, and its task then holds them all; the run says so, and how to split it."""
+    from pipeline.config import RunConfig
+    from pipeline.runner import run_scan
+
+    rng = np.random.default_rng(1)
+    spread = rng.uniform(0, 16, size=(6_000, 2))
+    standpoint = 3.5 + rng.uniform(0, 0.3, size=(4_000, 2))  # 4,000 points in one 1 m cell
+    xy = np.concatenate([spread, standpoint])
+    header = laspy.LasHeader(version="1.2", point_format=1)
+    header.scales, header.offsets = [0.001] * 3, [0.0] * 3
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xy[:, 0], xy[:, 1], rng.normal(0, 0.01, len(xy))
+    las.write(tmp_path / "station.las")
+    notes: list[str] = []
+    report = run_scan([tmp_path / "station.las"], tmp_path / "out.las",
+                      RunConfig(ratio=0.1, method="fps", tile_size=8.0, max_tile_points=2_000), note=notes.append)
+    assert report.output_points == 1_000
+    crowded = [line for line in notes if "--max-tile-points" in line]
+    assert len(crowded) == 1 and "1 grid cell(s) hold more than --max-tile-points (2,000) points" in crowded[0]
+    assert "--tile-size of about 5.6 m or less" in crowded[0]  # 8 m * sqrt(2,000 / 4,022)
