@@ -6,11 +6,12 @@ call, so Dask workers importing `pipeline.tasks` stay light.
 """
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
 from pipeline.config import RunConfig, build_config
-from pipeline.errors import PipelineError
+from pipeline.errors import PipelineError, PipelineNote
 
 if TYPE_CHECKING:
     import laspy
@@ -20,7 +21,7 @@ if TYPE_CHECKING:
     from pipeline.scoring import Reference, Score
     from pipeline.runner import RunReport
 
-__all__ = ["PipelineError", "RunConfig", "compare", "evaluate", "info", "run", "simplify"]
+__all__ = ["PipelineError", "PipelineNote", "RunConfig", "compare", "evaluate", "info", "run", "simplify"]
 
 
 def run(inputs: str | Path | Sequence[str | Path], output: str | Path | None = None, *, ratio: float | None = None,
@@ -35,7 +36,8 @@ def run(inputs: str | Path | Sequence[str | Path], output: str | Path | None = N
     `progress` shows bars at a terminal, else a line every 10 s on stderr.
     `client` reuses the caller's Dask client (no cluster started); `scheduler` (tcp://host:port) runs on
     an existing Dask cluster; otherwise a scan of at most `in_process_points` (1M) points runs on `workers`
-    threads of this process, and a larger one on a local cluster started for the call.
+    threads of this process, and a larger one on a local cluster started for the call. What the CLI
+    notes on stderr (lengths converted, metres assumed, ...) comes as a `PipelineNote` warning.
     """
     from pipeline.progress import Progress
     from pipeline.runner import run_scan
@@ -45,7 +47,7 @@ def run(inputs: str | Path | Sequence[str | Path], output: str | Path | None = N
     paths = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
     return run_scan(paths, output, build_config(config, ratio=ratio, **settings), overwrite=overwrite,
                     scratch=scratch, progress=Progress.for_terminal() if progress else None, scheduler=scheduler,
-                    client=client)
+                    client=client, note=lambda line: warnings.warn(line, PipelineNote, stacklevel=2))
 
 
 def simplify(points: np.ndarray | laspy.LasData, ratio: float, *, method: str = "learned", config: str | None = None,

@@ -1,4 +1,5 @@
-"""The one exception type the CLI turns into a single-line message and a non-zero exit."""
+"""The one exception type the CLI turns into a single-line message and a non-zero exit, and the warning
+that carries a run's notes to Python callers."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -12,6 +13,11 @@ class PipelineError(Exception):
 
     def __init__(self, message: str) -> None:
         super().__init__("; ".join(line.strip() for line in str(message).splitlines() if line.strip()))
+
+
+class PipelineNote(UserWarning):
+    """Something a run says and goes on (lengths converted or metres assumed, a class with no points, a grid
+    cell over the tile limit): `pipeline run` prints it on stderr, `pipeline.run` warns with it."""
 
 
 def file_system_error(exc: OSError, path: str | Path | None = None) -> PipelineError:

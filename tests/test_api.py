@@ -82,3 +82,15 @@ def test_the_callers_client_is_reused(tmp_path, street_scan, client):
 def test_in_process_points_must_not_be_negative():
     with pytest.raises(pipeline.PipelineError, match="in-process-points"):
         pipeline.RunConfig(in_process_points=-1).validated()
+
+
+def test_a_runs_notes_reach_python_callers_as_warnings(tmp_path):
+    """What `pipeline run` notes on stderr, `pipeline.run` warns: here, a scan without a CRS taken as metres."""
+    header = laspy.LasHeader(version="1.2", point_format=1)
+    header.scales, header.offsets = [0.01] * 3, [0.0] * 3
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = np.random.default_rng(2).uniform(0, 30, (3, 5_000))
+    las.write(tmp_path / "no_crs.las")
+    with pytest.warns(pipeline.PipelineNote, match="no usable CRS: its coordinates are taken as metres"):
+        report = pipeline.run(tmp_path / "no_crs.las", tmp_path / "out.las", ratio=0.1, method="random")
+    assert report.output_points == 500
