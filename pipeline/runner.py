@@ -25,6 +25,7 @@ from pipeline.output_guard import check_output
 from pipeline.progress import Progress, counted
 from pipeline.scan import Piece, Scan
 from pipeline.stop_guard import StopGuard
+from pipeline.threads import local_workers, runs_in_process
 from pipeline.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, simplify_tile, survey_tile
 from pipeline.validate import check_room, check_run
 from pipeline.workdir import WorkDir, output_settings
@@ -130,7 +131,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     written = None
     guard = StopGuard(stop_grace_s)
     try:
-        here = scan.point_count <= config.in_process_points  # tasks on threads: no cluster to start (same output)
+        here = runs_in_process(scan.point_count, config.in_process_points, local_workers(config.workers))
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here) as active:
             try:
                 written, tiles, resumed, kept_whole = simplify_scan(scan, outputs, config, settings, work, active, clock,

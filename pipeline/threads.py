@@ -24,6 +24,14 @@ def local_workers(requested: int) -> int:
     return max(1, min(requested, available_cores()))
 
 
+def runs_in_process(points: int, limit: int, threads: int) -> bool:
+    """Whether a scan of `points` runs on `threads` threads of this process rather than on a local cluster:
+    up to `limit` points at 2 threads, where it was measured, fewer with more. A task holds the GIL for a
+    share of its time (bench/gil_share.py), so threads lose to processes in proportion to 1 - 1/threads
+    (Amdahl's law), while the cluster's start and close stay the same."""
+    return points <= (limit if threads <= 2 else limit * 0.5 / (1 - 1 / threads))
+
+
 @contextmanager
 def in_process(threads: int = 1) -> Iterator[ThreadPoolExecutor]:
     """A pool of `threads` task threads in this process, BLAS, OpenMP and torch held to one thread each as

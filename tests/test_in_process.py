@@ -15,7 +15,7 @@ from pipeline.errors import PipelineError
 from pipeline.execute import map_tasks
 from pipeline.las_source import LasSource
 from pipeline.progress import Progress
-from pipeline.threads import in_process
+from pipeline.threads import in_process, runs_in_process
 from tiling.store import ChunkCache
 
 OFF = Progress("off")
@@ -93,6 +93,17 @@ def test_the_chunk_cache_shared_by_threads_keeps_its_budget_and_its_rows():
         correct = list(pool.map(fetch, [k // 4 % 60 for k in range(3_000)]))  # four threads want each chunk
     assert all(correct)
     assert cache._bytes <= budget and cache._bytes == sum(a.nbytes for a in cache._arrays.values())
+
+
+def test_more_threads_take_fewer_points_in_process():
+    """`in_process_points` holds at 2 threads; with more, threads lose more to processes (the GIL), so the
+    cluster's start pays off sooner: 667k points at 4 threads, 571k at 8; 0 always starts a cluster."""
+    limit = 1_000_000
+    assert runs_in_process(limit, limit, 1) and runs_in_process(limit, limit, 2)
+    assert not runs_in_process(limit + 1, limit, 2)
+    assert runs_in_process(666_000, limit, 4) and not runs_in_process(667_000, limit, 4)
+    assert runs_in_process(571_000, limit, 8) and not runs_in_process(572_000, limit, 8)
+    assert not runs_in_process(1, 0, 2)
 
 
 def test_the_in_process_run_gives_back_its_thread_settings():
