@@ -39,10 +39,10 @@ def map_tasks(client: Client | Executor, function: Callable, items: Sequence[Any
     """function(item, *shared) for every item on the cluster, or on the threads of an in-process run's
     executor; results in item order.
 
-    `shared` values become one task each that every task depends on, so a worker fetches them once;
-    unlike scattered data, the scheduler can recompute them if the workers holding them die. Tasks
-    of a lost worker are rerun elsewhere (Dask allows 3 losses a task). Tasks are submitted in item
-    order, IN_FLIGHT_PER_THREAD per worker thread ahead of the finished ones, not all at once: the
+    `shared` values become one task each that every task depends on, copied to every worker before the
+    tasks; unlike scattered data, the scheduler can recompute them if the workers holding them die. Tasks
+    of a lost worker are rerun elsewhere (Dask allows 3 losses a task). Tasks are submitted in
+    submission_order, IN_FLIGHT_PER_THREAD per worker thread ahead of the finished ones, not all at once: the
     client and scheduler then hold a bounded number of tasks whatever the tile count (all at once, the
     run's own process grew by about 37 KB a tile, 55 MiB for 1,517 tiles). The threads are recounted
     every RECOUNT_SECONDS, so workers that join an adaptive cluster mid-run get work. Progress counts
