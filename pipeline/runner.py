@@ -215,8 +215,7 @@ def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: 
     jobs = make_jobs(work, plan, slices, budgets, whole, config, fill)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]
     map_tasks(client, simplify_tile, pending, plan, desc="simplify", progress=progress,
-              weight=lambda outcome: outcome.points,
-              cost=lambda job: plan.tiles[job.tile_id].count)
+              weight=lambda outcome: outcome.points, cost=core_points(plan))
     clock.lap("simplify tiles")
     results = {job.tile_id: job.result_path for job in jobs}
     with progress.phase("resolve seams", len(results), unit="tile") as phase:
@@ -234,6 +233,11 @@ def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: 
     return written, len(jobs), len(jobs) - len(pending), int(whole.sum())
 
 
+def core_points(plan: TilePlan) -> Callable[[TileJob | SurveyJob], int]:
+    """A tile task's expected work for map_tasks' submission order: its tile's core points."""
+    return lambda job: plan.tiles[job.tile_id].count
+
+
 def crowded_cells_note(plan: TilePlan, max_points: int, tile_size_m: float) -> str | None:
     """Say so when grid cells (tile size / 8) hold more than max_points: the plan never splits a cell, so
     such a tile's task needs memory for all of its points (a terrestrial scanner's standpoint does this);
@@ -241,9 +245,10 @@ def crowded_cells_note(plan: TilePlan, max_points: int, tile_size_m: float) -> s
     crowded = [tile.count for tile in plan.tiles if tile.count > max_points]
     if not crowded:
         return None
-    smaller = tile_size_m * math.sqrt(max_points / max(crowded))
+    most = max(crowded)
+    smaller = tile_size_m * math.sqrt(max_points / most)
     return (f"{len(crowded)} grid cell(s) hold more than --max-tile-points ({max_points:,}) points, up to "
-            f"{max(crowded):,}: a cell is never split, so each is one tile and its task needs memory for all of "
+            f"{most:,}: a cell is never split, so each is one tile and its task needs memory for all of "
             f"them; a --tile-size of about {smaller:.2g} m or less would split them")
 
 
@@ -322,7 +327,7 @@ def survey_scan(client: Client | Executor, plan: TilePlan, slices: list[list[Sli
     pending = [job for job in jobs if not Path(job.survey_path).is_file()]
     fresh = dict(zip((job.tile_id for job in pending),
                      map_tasks(client, survey_tile, pending, plan, desc="survey tiles", progress=progress,
-                               cost=lambda job: plan.tiles[job.tile_id].count)))
+                               cost=core_points(plan))))
     surveys = [fresh[job.tile_id] if job.tile_id in fresh else load_survey(Path(job.survey_path)) for job in jobs]
     return surveys, np.array(sizes)
 

@@ -29,7 +29,7 @@ def runs_in_process(points: int, limit: int, threads: int) -> bool:
     up to `limit` points at 2 threads, where it was measured, fewer with more. A task holds the GIL for a
     share of its time (bench/gil_share.py), so threads lose to processes in proportion to 1 - 1/threads
     (Amdahl's law), while the cluster's start and close stay the same."""
-    return points <= (limit if threads <= 2 else limit * 0.5 / (1 - 1 / threads))
+    return points <= limit * 0.5 / (1 - 1 / max(threads, 2))
 
 
 @contextmanager
