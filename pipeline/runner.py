@@ -26,16 +26,17 @@ from pipeline.progress import Progress, counted
 from pipeline.scan import Piece, Scan
 from pipeline.stop_guard import StopGuard
 from pipeline.threads import local_workers, runs_in_process
-from pipeline.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, simplify_tile, survey_tile
+from pipeline.tasks import (SurveyJob, TileJob, TileSurvey, bucket_piece, count_sub_cells, load_survey, simplify_tile,
+                            survey_tile)
 from pipeline.validate import check_room, check_run
-from pipeline.workdir import WorkDir, output_settings
+from pipeline.workdir import BucketedPiece, WorkDir, output_settings
 from pipeline.output_meta import OutputMeta
 from pipeline.copc_output import COPC_SPILL_COPIES, copc_point_format
 from pipeline.writers import COPC_SUFFIX, OUTPUT_SUFFIXES, write_output
 from tiling.budgets import (coverage_weights, even_spacing, nested_budgets, pooled_median, saliency_weights,
                             target_count, tile_budgets, voxels_at)
 from tiling.bucket import cell_boxes, row_ranges
-from tiling.plan import DensityGrid, TilePlan, plan_tiles, summed_cells
+from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice, TileStore
 
 if TYPE_CHECKING:
@@ -239,16 +240,16 @@ def core_points(plan: TilePlan) -> Callable[[TileJob | SurveyJob], int]:
 
 
 def crowded_cells_note(plan: TilePlan, max_points: int, tile_size_m: float) -> str | None:
-    """Say so when grid cells (tile size / 8) hold more than max_points: the plan never splits a cell, so
-    such a tile's task needs memory for all of its points (a terrestrial scanner's standpoint does this);
-    the tile size that would split them, were the points spread evenly over the cell."""
+    """Say so when tiles hold more than max_points: a crowded cell is split down to sub-cells (tile size /
+    512) and no further, so such a tile's task needs memory for all of its points; the tile size that
+    would split them, were the points spread evenly over the sub-cell."""
     crowded = [tile.count for tile in plan.tiles if tile.count > max_points]
     if not crowded:
         return None
     most = max(crowded)
     smaller = tile_size_m * math.sqrt(max_points / most)
-    return (f"{len(crowded)} grid cell(s) hold more than --max-tile-points ({max_points:,}) points, up to "
-            f"{most:,}: a cell is never split, so each is one tile and its task needs memory for all of "
+    return (f"{len(crowded)} sub-cell(s) of tile size / {CELLS_PER_TILE * SUB_CELLS} hold more than --max-tile-points "
+            f"({max_points:,}) points, up to {most:,}: each is one tile and its task needs memory for all of "
             f"them; a --tile-size of about {smaller:.2g} m or less would split them")
 
 
@@ -288,9 +289,11 @@ def bucket_scan(client: Client | Executor, scan: Scan, pieces: list[Piece], work
     finished.update({piece.number: result for piece, result in zip(pending, fresh)})
     buckets = [finished[piece.number] for piece in pieces]
     cells, counts = summed_cells([b.cells for b in buckets], [np.diff(b.starts) for b in buckets])
-    plan = plan_tiles(grid, cells, counts, config.max_tile_points)
     _, protected = summed_cells([b.cells for b in buckets], [b.protected for b in buckets])
-    whole = np.bincount(plan.cell_tiles, weights=protected, minlength=len(plan.tiles)).astype(np.int64)  # plan.cells == cells
+    crowded = crowded_cells(cells, counts, config.max_tile_points)
+    sub_counts, sub_protected = count_crowded(client, crowded, pieces, buckets, grid, work, config, rule, progress)
+    plan = plan_tiles(grid, cells, counts, config.max_tile_points, sub_counts)
+    whole = plan.per_tile(protected, sub_protected)  # plan.cells == cells
     boxes = cell_boxes([b.cells for b in buckets], grid.shape[1])
     slices: list[list[Slice]] = []
     for tile_id in range(len(plan.tiles)):  # only the pieces a halo meets (not every piece for every tile)
@@ -300,6 +303,21 @@ def bucket_scan(client: Client | Executor, scan: Scan, pieces: list[Piece], work
         slices.append([Slice(pieces[k].number, int(lo), int(hi)) for k in meets
                        for lo, hi in row_ranges(buckets[k].cells, buckets[k].starts, cell_ranges)])
     return plan, slices, whole, np.sum([b.classes for b in buckets], axis=0)
+
+
+def count_crowded(client: Client | Executor, crowded: np.ndarray, pieces: list[Piece], buckets: list[BucketedPiece],
+                  grid: DensityGrid, work: WorkDir, config: RunConfig, rule: ClassRule,
+                  progress: Progress) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Points and points kept whole per sub-cell (crowded, SUB_CELLS, SUB_CELLS) of the cells over the tile
+    limit, so the plan can split them (None, None when there are none): one task per piece holding any."""
+    if len(crowded) == 0:
+        return None, None
+    cell_ranges = np.column_stack([crowded, crowded + 1])
+    shares = [tuple(Slice(piece.number, int(lo), int(hi)) for lo, hi in row_ranges(b.cells, b.starts, cell_ranges))
+              for piece, b in zip(pieces, buckets)]
+    counted = map_tasks(client, count_sub_cells, [share for share in shares if share], str(work.store_path), grid,
+                        crowded, rule, chunk_cache_bytes(config), desc="count crowded cells", progress=progress)
+    return sum(c for c, _ in counted), sum(p for _, p in counted)
 
 
 COVERAGE_LEVELS = 2.0 ** np.arange(-4, 5)  # voxel sizes, relative to the 2-D spacing estimate

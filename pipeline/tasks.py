@@ -1,4 +1,5 @@
-"""The work Dask workers do: bucket a piece into the store (counting its density), survey a tile, simplify a tile.
+"""The work Dask workers do: bucket a piece into the store (counting its density), count a crowded cell's
+sub-cells, survey a tile, simplify a tile.
 
 Each function takes plain picklable data and touches only its own piece or tile, so any worker of a
 local or remote cluster can run it, in any order, with the same result.
@@ -20,8 +21,8 @@ from pipeline.classes import ClassRule, class_histogram
 from pipeline.workdir import BucketedPiece, WorkDir, save_npz, write_atomically
 from tiling.bucket import bucket_by_cell
 from tiling.budgets import occupied_voxels, target_count
-from tiling.plan import DensityGrid, TilePlan
-from tiling.store import Slice, TileStore
+from tiling.plan import SUB_CELLS, DensityGrid, TilePlan
+from tiling.store import Slice, StoredPoints, TileStore
 
 
 @dataclass(frozen=True)
@@ -97,16 +98,40 @@ def load_tile(store_path: str, slices: tuple[Slice, ...], cache_bytes: int, plan
     """A tile's core and halo points, centred on the core's mean, their raw records (same order), and the
     indices of the core points `rule` keeps whole: they stay in the tile as context, outside its core."""
     store = TileStore.open(Path(store_path))
-    attrs = store.attrs
-    records = store.load(slices, cache_bytes).records
-    xyz = scaled_xyz(records, np.asarray(attrs["scales"]), np.asarray(attrs["offsets"]))
+    scales, offsets = stored_scaling(store)
+
+    def seen(points: StoredPoints) -> np.ndarray:
+        xyz = scaled_xyz(points.records, scales, offsets)
+        return plan.halo_mask(plan.core_mask(tile_id, xyz), tile_id, xyz, overlap)
+
+    records = store.load(slices, cache_bytes, keep=seen).records  # a crowded neighbour is never held whole
+    xyz = scaled_xyz(records, scales, offsets)
     core = plan.core_mask(tile_id, xyz)
-    seen = np.flatnonzero(plan.halo_mask(core, tile_id, xyz, overlap))
-    xyz, core, records = xyz[seen], core[seen], records[seen]
     protected = core & rule.protected(records)
     core &= ~protected
     centre = xyz[core | protected].mean(axis=0) if (core | protected).any() else np.zeros(3)
     return Tile(xyz - centre, core, centre, tile_seed(run_seed, tile_id)), records, np.flatnonzero(protected)
+
+
+def stored_scaling(store: TileStore) -> tuple[np.ndarray, np.ndarray]:
+    """The (3,) scales and offsets that turn the store's records into coordinates."""
+    attrs = store.attrs
+    return np.asarray(attrs["scales"]), np.asarray(attrs["offsets"])
+
+
+def count_sub_cells(slices: tuple[Slice, ...], store_path: str, grid: DensityGrid, crowded: np.ndarray,
+                    rule: ClassRule, cache_bytes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Points, and points `rule` keeps whole, per sub-cell (crowded, SUB_CELLS, SUB_CELLS) of the crowded
+    cells among the given rows (one piece's share of those cells), read a row chunk at a time."""
+    store = TileStore.open(Path(store_path))
+    scales, offsets = stored_scaling(store)
+    counts = np.zeros((len(crowded), SUB_CELLS, SUB_CELLS), dtype=np.int64)
+    protected = np.zeros_like(counts)
+    for part in store.stream(slices, cache_bytes):
+        xyz = scaled_xyz(part.records, scales, offsets)
+        counts += grid.sub_count(xyz, crowded)
+        protected += grid.sub_count(xyz[rule.protected(part.records)], crowded)
+    return counts, protected
 
 
 @dataclass(frozen=True)

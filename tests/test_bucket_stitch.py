@@ -57,6 +57,13 @@ def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path):
         near = (xyz[:, 0] >= x0 - overlap) & (xyz[:, 0] < x1 + overlap) & (xyz[:, 1] >= y0 - overlap) \
             & (xyz[:, 1] < y1 + overlap)
         assert set(np.flatnonzero(near)) == set(stored.index[seen].tolist())  # the whole halo, nothing more
+
+        def in_halo(part):
+            return plan.halo_mask(plan.core_mask(tile_id, xyz[part.index]), tile_id, xyz[part.index], overlap)
+
+        filtered = reopened.load(slices, 0, keep=in_halo)  # chunk by chunk: the same points, in the same order
+        np.testing.assert_array_equal(filtered.index, stored.index[seen])
+        np.testing.assert_array_equal(filtered.records, stored.records[seen])
     assert (seen_core == 1).all()
 
 

@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from tiling.budgets import target_count, tile_budgets
-from tiling.plan import DensityGrid, plan_tiles
+from tiling.plan import SUB_CELLS, DensityGrid, crowded_cells, plan_tiles
 
 
 def clustered_points(n: int, seed: int = 0) -> np.ndarray:
@@ -41,6 +41,37 @@ def test_dense_tiles_split_until_under_budget():
     assert all(t.count <= 3_000 or one for t, one in zip(plan.tiles, single_cell))
     assert len(plan.tiles) > (200 // 50 + 1) * (120 // 50 + 1)  # more tiles than the nominal grid
     assert all(t.count > 0 for t in plan.tiles)
+
+
+def test_a_crowded_cell_is_split_on_its_sub_cells_into_tiles_under_the_limit():
+    """A scanner's standpoint: 20,000 points within 0.8 m, in one 3.125 m cell of a 25 m tile. Its
+    sub-cells (tile size / 512) are quartered like cells, so every tile holds at most the limit; the cores
+    still partition every point (sub-cell edges included), and each point lies in its tile's rectangle."""
+    rng = np.random.default_rng(4)
+    background = rng.uniform([0, 0, 0], [100, 100, 5], size=(20_000, 3))
+    standpoint = rng.normal([40.2, 60.2, 1], [0.2, 0.2, 0.5], size=(20_000, 3))
+    xyz = np.vstack([background, standpoint])
+    grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=25)
+    sub = grid.cell / SUB_CELLS
+    edges = np.array([[40 + k * sub, 60.2, 0.0] for k in range(-20, 20)])  # on and around sub-cell edges
+    xyz = np.vstack([xyz, edges])
+    cells, counts = grid.count([xyz])
+    crowded = crowded_cells(cells, counts, 2_000)
+    assert len(crowded) >= 1
+    plan = plan_tiles(grid, cells, counts, 2_000, grid.sub_count(xyz, crowded))
+    assert all(0 < t.count <= 2_000 for t in plan.tiles)
+    owner = plan.tile_of(xyz)
+    assert (owner >= 0).all() and np.bincount(owner, minlength=len(plan.tiles)).tolist() == [t.count for t in plan.tiles]
+    b = np.array([plan.bounds(t) for t in range(len(plan.tiles))])[owner]
+    slack = 1e-9 * np.abs(xyz[:, :2]).max()  # a sub-cell's bounds are summed from the cell's, not floored
+    assert ((xyz[:, 0] >= b[:, 0] - slack) & (xyz[:, 0] < b[:, 2] + slack)
+            & (xyz[:, 1] >= b[:, 1] - slack) & (xyz[:, 1] < b[:, 3] + slack)).all()
+    parts = [t for t in plan.tiles if t.sub is not None]
+    assert len(parts) >= 10  # 20,000 points over 2,000 a tile
+    assert sum(t.occupied for t in parts) <= len(crowded)  # the split cells' area, no more
+    assert plan.per_tile(counts, grid.sub_count(xyz, crowded)).tolist() == [t.count for t in plan.tiles]
+    unsplit = plan_tiles(grid, cells, counts, 2_000)  # without sub-cell counts: the old plan, a tile per crowded cell
+    assert max(t.count for t in unsplit.tiles) > 2_000 and all(t.sub is None for t in unsplit.tiles)
 
 
 def test_all_identical_points_make_one_tile():

@@ -202,25 +202,58 @@ def test_two_sites_far_apart_run_in_tiles_within_the_budget(tmp_path):
     assert report.output_points == 4_000 and report.tiles >= 8  # 40k points: at least 8 tiles of <= 5k
 
 
-def test_a_cell_over_the_tile_limit_is_named_with_the_tile_size_that_splits_it(tmp_path):
-    """A plan never splits a grid cell (tile size / 8): a scanner's standpoint can put more than
-    --max-tile-points into one, and its task then holds them all; the run says so, and how to split it."""
-    from pipeline.config import RunConfig
-    from pipeline.runner import run_scan
-
+def station_scan(path: Path, corner: float, width: float) -> Path:
+    """A 16 m square of 6,000 points (corners at 0 and 16, so grid cells start at whole metres) with 4,000
+    more in the square of `width` from (corner, corner): a terrestrial scanner's standpoint."""
     rng = np.random.default_rng(1)
-    spread = rng.uniform(0, 16, size=(6_000, 2))
-    standpoint = 3.5 + rng.uniform(0, 0.3, size=(4_000, 2))  # 4,000 points in one 1 m cell
+    spread = np.concatenate([[[0, 0], [16, 16]], rng.uniform(0, 16, size=(5_998, 2))])
+    standpoint = corner + rng.uniform(0, width, size=(4_000, 2))
     xy = np.concatenate([spread, standpoint])
     header = laspy.LasHeader(version="1.2", point_format=1)
     header.scales, header.offsets = [0.001] * 3, [0.0] * 3
     las = laspy.LasData(header)
     las.x, las.y, las.z = xy[:, 0], xy[:, 1], rng.normal(0, 0.01, len(xy))
-    las.write(tmp_path / "station.las")
+    las.classification = np.where(np.arange(len(xy)) % 10 == 0, 6, 2)
+    las.write(path)
+    return path
+
+
+@pytest.mark.parametrize("method", ["fps", "learned"])
+def test_a_cell_over_the_tile_limit_is_split_into_tiles_under_it(tmp_path, method):
+    """A scanner's standpoint puts more than --max-tile-points into one grid cell (tile size / 8): the plan
+    splits that cell on its sub-cells, so no task holds more than the limit; the output is exact, the
+    points a class rule keeps whole are all kept, and any worker count gives the same file."""
+    from pipeline.config import RunConfig
+    from pipeline.runner import run_scan
+
+    scan = station_scan(tmp_path / "station.las", 3.5, 0.3)  # in one 1 m cell
+    outputs, notes = [], []
+    for workers, in_process in ((1, 10**9), (2, 0)):
+        out = tmp_path / f"out{workers}.las"
+        report = run_scan([scan], out, RunConfig(ratio=0.1, method=method, tile_size=8.0, max_tile_points=2_000,
+                                                 workers=workers, in_process_points=in_process, keep_classes=(6,)),
+                          note=notes.append)
+        outputs.append(out.read_bytes())
+        assert report.kept_whole == 1_000 and report.output_points == 1_000 + 900  # 0.1 of the other 9,000
+        assert report.tiles >= 4  # the 8 m square's 4 tiles, the standpoint's cell now several more
+    assert outputs[0] == outputs[1]
+    assert not [line for line in notes if "--max-tile-points" in line]
+    kept = laspy.read(tmp_path / "out1.las")
+    assert (kept.classification == 6).sum() == 1_000
+    near = (np.abs(kept.x - 3.65) < 0.15) & (np.abs(kept.y - 3.65) < 0.15)
+    assert near.sum() >= 0.5 * 0.1 * 4_000  # the split standpoint keeps its share, not a seam-starved few
+
+
+def test_a_sub_cell_over_the_tile_limit_is_named_with_the_tile_size_that_splits_it(tmp_path):
+    """A crowded cell is split down to sub-cells (tile size / 512) and no further: 4,000 points within
+    one sub-cell stay one tile over the limit, and the run says so, and which tile size would split it."""
+    from pipeline.config import RunConfig
+    from pipeline.runner import run_scan
+
     notes: list[str] = []
-    report = run_scan([tmp_path / "station.las"], tmp_path / "out.las",
+    report = run_scan([station_scan(tmp_path / "station.las", 3.506, 0.003)], tmp_path / "out.las",  # 1 sub-cell
                       RunConfig(ratio=0.1, method="fps", tile_size=8.0, max_tile_points=2_000), note=notes.append)
     assert report.output_points == 1_000
     crowded = [line for line in notes if "--max-tile-points" in line]
-    assert len(crowded) == 1 and "1 grid cell(s) hold more than --max-tile-points (2,000) points" in crowded[0]
-    assert "--tile-size of about 5.6 m or less" in crowded[0]  # 8 m * sqrt(2,000 / 4,022)
+    assert len(crowded) == 1 and "1 sub-cell(s) of tile size / 512 hold more than --max-tile-points (2,000)" in crowded[0]
+    assert "--tile-size of about 5.7 m or less" in crowded[0]  # 8 m * sqrt(2,000 / 4,000)

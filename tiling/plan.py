@@ -4,16 +4,20 @@ Each point falls in exactly one grid cell (floor of its offset, clipped to the g
 at most one tile, so core membership is a half-open partition that floating-point rounding cannot break.
 The grid is sparse: only occupied cells are counted and looked up, so its cells stay tile_size / 8
 whatever the extent (two sites 200 km apart, a 100 km corridor) and tiles stay within the point budget.
+A cell that alone holds more than the budget (a terrestrial scanner's standpoint) is split the same way
+on a grid of SUB_CELLS x SUB_CELLS sub-cells, each point's sub-cell found by the same floor rule.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Iterable
 
 import numpy as np
 
 CELLS_PER_TILE = 8       # a nominal tile is 8x8 cells: three quadtree splits before a tile is one cell
 MAX_AXIS_CELLS = 2**31   # per axis, so flat cell ids (i * ny + j) fit int64
+SUB_CELLS = 64           # a crowded cell is split on 64 x 64 sub-cells (tile_size / 512 a side)
+SPLIT = -2               # cell_tiles' mark for a split cell: its sub-cells name the tiles
 
 
 @dataclass(frozen=True)
@@ -36,10 +40,30 @@ class DensityGrid:
 
     def cell_of(self, xy: np.ndarray) -> np.ndarray:
         """Flat (row-major, x first) cell id of each point; points past the edges go to the edge cells."""
-        ij = np.floor((xy[:, :2] - np.asarray(self.origin)) / self.cell)
-        i = np.clip(ij[:, 0], 0, self.shape[0] - 1).astype(np.int64)
-        j = np.clip(ij[:, 1], 0, self.shape[1] - 1).astype(np.int64)
+        i, j = self._cell_ij(xy)
         return i * self.shape[1] + j
+
+    def sub_cell_of(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Each point's (i, j) sub-cell (0..SUB_CELLS-1) inside its own cell: the same floor rule, one level down."""
+        offset = (xy[:, :2] - np.asarray(self.origin)) / self.cell
+        i, j = self._cell_ij(xy)
+        si = np.clip(np.floor((offset[:, 0] - i) * SUB_CELLS), 0, SUB_CELLS - 1).astype(np.int64)
+        sj = np.clip(np.floor((offset[:, 1] - j) * SUB_CELLS), 0, SUB_CELLS - 1).astype(np.int64)
+        return si, sj
+
+    def sub_count(self, xy: np.ndarray, cells: np.ndarray) -> np.ndarray:
+        """(len(cells), SUB_CELLS, SUB_CELLS) points of `xy` in each sub-cell of the given sorted cells."""
+        ids = self.cell_of(xy)
+        at = np.minimum(np.searchsorted(cells, ids), max(len(cells) - 1, 0))
+        inside = np.flatnonzero(cells[at] == ids) if len(cells) else np.empty(0, dtype=np.int64)
+        si, sj = self.sub_cell_of(xy[inside])
+        flat = (at[inside] * SUB_CELLS + si) * SUB_CELLS + sj
+        return np.bincount(flat, minlength=len(cells) * SUB_CELLS**2).reshape(len(cells), SUB_CELLS, SUB_CELLS)
+
+    def _cell_ij(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        ij = np.floor((xy[:, :2] - np.asarray(self.origin)) / self.cell)
+        return (np.clip(ij[:, 0], 0, self.shape[0] - 1).astype(np.int64),
+                np.clip(ij[:, 1], 0, self.shape[1] - 1).astype(np.int64))
 
     def count(self, xy_chunks: Iterable[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Occupied cells (sorted flat ids) and their point counts, over a stream of xy chunks."""
@@ -59,14 +83,16 @@ def summed_cells(cells: list[np.ndarray], counts: list[np.ndarray]) -> tuple[np.
 
 @dataclass(frozen=True)
 class TileRect:
-    """A tile's core: cells [i0, i1) x [j0, j1), its point count and how many of its cells hold points."""
+    """A tile's core: cells [i0, i1) x [j0, j1), its point count and the grid-cell area its points occupy;
+    for part of a split cell, also the sub-cells [si0, si1) x [sj0, sj1) of cell (i0, j0) it holds."""
 
     i0: int
     i1: int
     j0: int
     j1: int
     count: int
-    occupied: int
+    occupied: float
+    sub: tuple[int, int, int, int] | None = None
 
 
 @dataclass(frozen=True)
@@ -76,7 +102,9 @@ class TilePlan:
     grid: DensityGrid
     tiles: tuple[TileRect, ...]
     cells: np.ndarray       # (occupied,) sorted flat ids of the occupied cells
-    cell_tiles: np.ndarray  # (occupied,) int32 id of the tile holding each
+    cell_tiles: np.ndarray  # (occupied,) int32 id of the tile holding each (SPLIT for a split cell)
+    split_cells: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))  # (k,) sorted flat ids
+    sub_tiles: np.ndarray = field(default_factory=lambda: np.empty((0, SUB_CELLS, SUB_CELLS), dtype=np.int32))
 
     def tile_of(self, xy: np.ndarray) -> np.ndarray:
         """The id of the tile whose core holds each point (-1 for a point in a cell no tile holds)."""
@@ -84,13 +112,32 @@ class TilePlan:
         if len(self.cells) == 0:
             return np.full(len(ids), -1, dtype=np.int32)
         at = np.minimum(np.searchsorted(self.cells, ids), len(self.cells) - 1)
-        return np.where(self.cells[at] == ids, self.cell_tiles[at], -1).astype(np.int32)
+        tiles = np.where(self.cells[at] == ids, self.cell_tiles[at], -1).astype(np.int32)
+        split = np.flatnonzero(tiles == SPLIT)
+        if len(split):
+            si, sj = self.grid.sub_cell_of(xy[split])
+            tiles[split] = self.sub_tiles[np.searchsorted(self.split_cells, ids[split]), si, sj]
+        return tiles
 
     def bounds(self, tile_id: int) -> tuple[float, float, float, float]:
         """Core rectangle (xmin, ymin, xmax, ymax) in scan coordinates, half-open on the max side."""
         t = self.tiles[tile_id]
         (ox, oy), c = self.grid.origin, self.grid.cell
-        return ox + t.i0 * c, oy + t.j0 * c, ox + t.i1 * c, oy + t.j1 * c
+        if t.sub is None:
+            return ox + t.i0 * c, oy + t.j0 * c, ox + t.i1 * c, oy + t.j1 * c
+        si0, si1, sj0, sj1 = t.sub
+        s = c / SUB_CELLS
+        return (ox + t.i0 * c + si0 * s, oy + t.j0 * c + sj0 * s, ox + t.i0 * c + si1 * s, oy + t.j0 * c + sj1 * s)
+
+    def per_tile(self, per_cell: np.ndarray, per_sub_cell: np.ndarray | None = None) -> np.ndarray:
+        """(tiles,) sums of a count given per occupied cell (occupied,) and, for split cells, per sub-cell
+        (k, SUB_CELLS, SUB_CELLS): the tiles' share of it."""
+        whole = self.cell_tiles >= 0
+        totals = np.bincount(self.cell_tiles[whole], weights=np.asarray(per_cell)[whole], minlength=len(self.tiles))
+        if per_sub_cell is not None and len(self.split_cells):
+            named = self.sub_tiles >= 0
+            totals += np.bincount(self.sub_tiles[named], weights=per_sub_cell[named], minlength=len(self.tiles))
+        return totals.astype(np.int64)
 
     def halo_cell_rect(self, tile_id: int, overlap: float) -> tuple[int, int, int, int]:
         """Cells [i0, i1) x [j0, j1) within `overlap` of the tile's core, clipped to the grid."""
@@ -115,21 +162,26 @@ class TilePlan:
         return core | ((x >= x0 - overlap) & (x < x1 + overlap) & (y >= y0 - overlap) & (y < y1 + overlap))
 
 
-def plan_tiles(grid: DensityGrid, cells: np.ndarray, counts: np.ndarray, max_points: int) -> TilePlan:
+def plan_tiles(grid: DensityGrid, cells: np.ndarray, counts: np.ndarray, max_points: int,
+               sub_counts: np.ndarray | None = None) -> TilePlan:
     """Cut the grid into nominal tiles of 8x8 cells, quarter any holding more than max_points, drop empty ones.
 
     cells: (occupied,) sorted flat cell ids; counts: their points. Only occupied nominal tiles are visited,
-    in row-major order, so the work and memory follow the occupied area, not the extent."""
+    in row-major order, so the work and memory follow the occupied area, not the extent. A single cell
+    still over max_points is quartered in turn on its sub-cells, where `sub_counts` gives them:
+    (crowded, SUB_CELLS, SUB_CELLS) points per sub-cell of each cell in crowded_cells(cells, counts, max_points)."""
     nx, ny = grid.shape
     cells, counts = np.asarray(cells, dtype=np.int64), np.asarray(counts, dtype=np.int64)
     keep = counts > 0
     cells, counts = cells[keep], counts[keep]
+    crowded = crowded_cells(cells, counts, max_points) if sub_counts is not None else np.empty(0, dtype=np.int64)
     i, j = cells // ny, cells % ny
     blocks = (i // CELLS_PER_TILE) * (-(-ny // CELLS_PER_TILE)) + j // CELLS_PER_TILE
     order = np.argsort(blocks, kind="stable")
     starts = np.flatnonzero(np.diff(blocks[order], prepend=-1))
     tiles: list[TileRect] = []
     cell_tiles = np.full(len(cells), -1, dtype=np.int32)
+    sub_tiles = np.full((len(crowded), SUB_CELLS, SUB_CELLS), -1, dtype=np.int32)
     for members in np.split(order, starts[1:]):
         i0, j0 = int(i[members[0]] // CELLS_PER_TILE * CELLS_PER_TILE), int(j[members[0]] // CELLS_PER_TILE * CELLS_PER_TILE)
         local = np.zeros((min(CELLS_PER_TILE, nx - i0), min(CELLS_PER_TILE, ny - j0)), dtype=np.int64)
@@ -137,9 +189,24 @@ def plan_tiles(grid: DensityGrid, cells: np.ndarray, counts: np.ndarray, max_poi
         for rect in split_block(local, max_points):
             tile = TileRect(rect.i0 + i0, rect.i1 + i0, rect.j0 + j0, rect.j1 + j0, rect.count, rect.occupied)
             inside = (i[members] >= tile.i0) & (i[members] < tile.i1) & (j[members] >= tile.j0) & (j[members] < tile.j1)
+            split = np.searchsorted(crowded, tile.i0 * ny + tile.j0) if len(crowded) else 0
+            if tile.count > max_points and split < len(crowded) and crowded[split] == tile.i0 * ny + tile.j0:
+                cell_tiles[members[inside]] = SPLIT
+                for part in split_block(sub_counts[split], max_points):
+                    sub_tiles[split, part.i0:part.i1, part.j0:part.j1][sub_counts[split, part.i0:part.i1,
+                                                                                   part.j0:part.j1] > 0] = len(tiles)
+                    tiles.append(TileRect(tile.i0, tile.i1, tile.j0, tile.j1, part.count,
+                                          part.occupied / SUB_CELLS**2, (part.i0, part.i1, part.j0, part.j1)))
+                continue
             cell_tiles[members[inside]] = len(tiles)
             tiles.append(tile)
-    return TilePlan(grid, tuple(tiles), cells, cell_tiles)
+    return TilePlan(grid, tuple(tiles), cells, cell_tiles, crowded, sub_tiles)
+
+
+def crowded_cells(cells: np.ndarray, counts: np.ndarray, max_points: int) -> np.ndarray:
+    """The sorted cells (of sorted `cells`, with their point `counts`) that alone hold more than max_points:
+    the cells plan_tiles splits, given their sub-cell counts."""
+    return np.asarray(cells, dtype=np.int64)[np.asarray(counts) > max_points]
 
 
 def split_block(counts: np.ndarray, max_points: int) -> list[TileRect]:

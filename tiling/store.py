@@ -27,6 +27,10 @@ class StoredPoints:
     records: np.ndarray
     index: np.ndarray
 
+    def of(self, mask: np.ndarray) -> "StoredPoints":
+        """The points a boolean mask keeps."""
+        return StoredPoints(self.records[mask], self.index[mask])
+
 
 @dataclass(frozen=True)
 class Slice:
@@ -140,17 +144,30 @@ class TileStore:
                               lambda: array[first:first + ROW_CHUNK])
             yield rows[max(s.start - first, 0):s.stop - first]
 
-    def load(self, slices: Sequence[Slice], cache_bytes: int = 0) -> StoredPoints:
-        """The rows of the given slices, in the order given; row chunks are cached up to cache_bytes."""
-        parts = []
+    def stream(self, slices: Sequence[Slice], cache_bytes: int = 0) -> Iterator[StoredPoints]:
+        """The rows of the given slices in the order given, a row chunk (at most ROW_CHUNK rows) at a time:
+        a reader that keeps only some of them never holds more than a chunk besides what it keeps."""
         for s in slices:
             if s.stop <= s.start:
                 continue
             if cache_bytes > 0:
-                parts.extend(self._cached_rows(s, cache_bytes))
+                yield from map(self._points, self._cached_rows(s, cache_bytes))
             else:
-                parts.append(self._piece(s.piece)[s.start:s.stop])
-        rows = np.concatenate(parts) if parts else np.empty((0, self.record_dtype.itemsize + TAIL), np.uint8)
+                for first in range(s.start, s.stop, ROW_CHUNK):
+                    yield self._points(self._piece(s.piece)[first:min(first + ROW_CHUNK, s.stop)])
+
+    def load(self, slices: Sequence[Slice], cache_bytes: int = 0,
+             keep: Callable[[StoredPoints], np.ndarray] | None = None) -> StoredPoints:
+        """The rows of the given slices, in the order given; row chunks are cached up to cache_bytes. With
+        `keep` (a row chunk's points -> a boolean mask), only the rows it keeps, chunk by chunk, so the
+        memory is what is kept, not what the slices span."""
+        parts = [part if keep is None else part.of(keep(part)) for part in self.stream(slices, cache_bytes)]
+        if not parts:
+            return self._points(np.empty((0, self.record_dtype.itemsize + TAIL), np.uint8))
+        return StoredPoints(np.concatenate([p.records for p in parts]), np.concatenate([p.index for p in parts]))
+
+    def _points(self, rows: np.ndarray) -> StoredPoints:
+        """Records and global indices of stored rows."""
         records = np.ascontiguousarray(rows[:, :-TAIL]).view(self.record_dtype).ravel()
         index = np.ascontiguousarray(rows[:, -TAIL:]).view("<i8").ravel()
         return StoredPoints(records, index)
