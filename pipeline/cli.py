@@ -85,7 +85,7 @@ def cli() -> None:
               help="Output file: .las, .laz, .copc.laz (COPC 1.0) or .zarr. [default: ./<input>.simplified.laz]")
 @click.option("--method", "-m", type=click.Choice(METHODS), default=None, help="Simplifier. [default: learned]")
 @click.option("--tile-size", type=float, default=None, help="Nominal tile edge in metres. [default: 50]")
-@click.option("--overlap", type=float, default=None, help="Halo width around each tile in metres. [default: 2]")
+@click.option("--overlap", type=float, default=None, help="Halo width around each tile in metres (into a split crowded cell, at most 64 of its point spacings). [default: 2]")
 @click.option("--max-tile-points", type=int, default=None, help="Split tiles with more core points. [default: 200000]")
 @click.option("--seam-tolerance", type=float, default=None,
               help="Kept points of different tiles closer than this (m) keep one. [default: 0.01]")

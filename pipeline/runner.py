@@ -26,16 +26,16 @@ from pipeline.progress import Progress, counted
 from pipeline.scan import Piece, Scan
 from pipeline.stop_guard import StopGuard
 from pipeline.threads import local_workers, runs_in_process
-from pipeline.tasks import (SurveyJob, TileJob, TileSurvey, bucket_piece, count_sub_cells, load_survey, simplify_tile,
+from pipeline.tasks import (SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, simplify_tile, sort_crowded,
                             survey_tile)
 from pipeline.validate import check_room, check_run
 from pipeline.workdir import BucketedPiece, WorkDir, output_settings
 from pipeline.output_meta import OutputMeta
 from pipeline.copc_output import COPC_SPILL_COPIES, copc_point_format
 from pipeline.writers import COPC_SUFFIX, OUTPUT_SUFFIXES, write_output
-from tiling.budgets import (coverage_weights, even_spacing, nested_budgets, pooled_median, saliency_weights,
-                            target_count, tile_budgets, voxels_at)
-from tiling.bucket import cell_boxes, row_ranges
+from tiling.budgets import (coverage_weights, even_spacing, grouped_budgets, nested_budgets, pooled_median,
+                            saliency_weights, target_count, voxels_at)
+from tiling.bucket import SubCellBuckets, cell_boxes, halo_slices, row_ranges
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice, TileStore
 
@@ -212,7 +212,7 @@ def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: 
         else:  # saliency shared as one pass would; a point in every voxel of the hole radius, so every tile
             weights, fill = scan_fill(surveys, occupied, sizes, target)  # keeps enough to cover its holes
             floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)
-    budgets = tile_budgets(counts, config.ratio, floors=floors, weights=weights)
+    budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights)
     jobs = make_jobs(work, plan, slices, budgets, whole, config, fill)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]
     map_tasks(client, simplify_tile, pending, plan, desc="simplify", progress=progress,
@@ -291,33 +291,35 @@ def bucket_scan(client: Client | Executor, scan: Scan, pieces: list[Piece], work
     cells, counts = summed_cells([b.cells for b in buckets], [np.diff(b.starts) for b in buckets])
     _, protected = summed_cells([b.cells for b in buckets], [b.protected for b in buckets])
     crowded = crowded_cells(cells, counts, config.max_tile_points)
-    sub_counts, sub_protected = count_crowded(client, crowded, pieces, buckets, grid, work, config, rule, progress)
+    copies = sort_crowded_cells(client, crowded, pieces, buckets, grid, work, config, rule, progress)
+    sub_counts = sum(c.counts for c in copies.values()) if copies else None
     plan = plan_tiles(grid, cells, counts, config.max_tile_points, sub_counts)
-    whole = plan.per_tile(protected, sub_protected)  # plan.cells == cells
+    whole = plan.per_tile(protected, sum(c.protected for c in copies.values()) if copies else None)  # plan.cells == cells
     boxes = cell_boxes([b.cells for b in buckets], grid.shape[1])
     slices: list[list[Slice]] = []
     for tile_id in range(len(plan.tiles)):  # only the pieces a halo meets (not every piece for every tile)
         i0, i1, j0, j1 = plan.halo_cell_rect(tile_id, seen_overlap(config))
         meets = np.flatnonzero((boxes[:, 0] < i1) & (boxes[:, 1] > i0) & (boxes[:, 2] < j1) & (boxes[:, 3] > j0))
-        cell_ranges = plan.halo_cell_ranges(tile_id, seen_overlap(config))
-        slices.append([Slice(pieces[k].number, int(lo), int(hi)) for k in meets
-                       for lo, hi in row_ranges(buckets[k].cells, buckets[k].starts, cell_ranges)])
+        slices.append([s for k in meets for s in halo_slices(plan, tile_id, seen_overlap(config), pieces[k].number,
+                                                             buckets[k], copies.get(pieces[k].number))])
     return plan, slices, whole, np.sum([b.classes for b in buckets], axis=0)
 
 
-def count_crowded(client: Client | Executor, crowded: np.ndarray, pieces: list[Piece], buckets: list[BucketedPiece],
-                  grid: DensityGrid, work: WorkDir, config: RunConfig, rule: ClassRule,
-                  progress: Progress) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """Points and points kept whole per sub-cell (crowded, SUB_CELLS, SUB_CELLS) of the cells over the tile
-    limit, so the plan can split them (None, None when there are none): one task per piece holding any."""
+def sort_crowded_cells(client: Client | Executor, crowded: np.ndarray, pieces: list[Piece],
+                       buckets: list[BucketedPiece], grid: DensityGrid, work: WorkDir, config: RunConfig,
+                       rule: ClassRule, progress: Progress) -> dict[int, SubCellBuckets]:
+    """Each piece's rows in the cells over the tile limit, copied sorted by sub-cell (one task per piece
+    holding any): the sub-cell starts of each copy by piece number, from which the plan splits those
+    cells and their tiles read only their own sub-cells. Empty when no cell is crowded."""
     if len(crowded) == 0:
-        return None, None
+        return {}
     cell_ranges = np.column_stack([crowded, crowded + 1])
     shares = [tuple(Slice(piece.number, int(lo), int(hi)) for lo, hi in row_ranges(b.cells, b.starts, cell_ranges))
               for piece, b in zip(pieces, buckets)]
-    counted = map_tasks(client, count_sub_cells, [share for share in shares if share], str(work.store_path), grid,
-                        crowded, rule, chunk_cache_bytes(config), desc="count crowded cells", progress=progress)
-    return sum(c for c, _ in counted), sum(p for _, p in counted)
+    shares = [share for share in shares if share]
+    copies = map_tasks(client, sort_crowded, shares, str(work.store_path), grid, crowded, rule,
+                       chunk_cache_bytes(config), desc="sort crowded cells", progress=progress)
+    return {share[0].piece: copy for share, copy in zip(shares, copies)}
 
 
 COVERAGE_LEVELS = 2.0 ** np.arange(-4, 5)  # voxel sizes, relative to the 2-D spacing estimate

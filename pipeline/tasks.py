@@ -1,5 +1,5 @@
-"""The work Dask workers do: bucket a piece into the store (counting its density), count a crowded cell's
-sub-cells, survey a tile, simplify a tile.
+"""The work Dask workers do: bucket a piece into the store (counting its density), copy its rows in crowded
+cells sorted by sub-cell, survey a tile, simplify a tile.
 
 Each function takes plain picklable data and touches only its own piece or tile, so any worker of a
 local or remote cluster can run it, in any order, with the same result.
@@ -19,9 +19,9 @@ from model.stratified import pick_spacings
 from pipeline.scan import Piece, Scan, scaled_xyz
 from pipeline.classes import ClassRule, class_histogram
 from pipeline.workdir import BucketedPiece, WorkDir, save_npz, write_atomically
-from tiling.bucket import bucket_by_cell
+from tiling.bucket import SubCellBuckets, bucket_by_cell, bucket_by_sub_cell
 from tiling.budgets import occupied_voxels, target_count
-from tiling.plan import SUB_CELLS, DensityGrid, TilePlan
+from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, StoredPoints, TileStore
 
 
@@ -119,19 +119,18 @@ def stored_scaling(store: TileStore) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(attrs["scales"]), np.asarray(attrs["offsets"])
 
 
-def count_sub_cells(slices: tuple[Slice, ...], store_path: str, grid: DensityGrid, crowded: np.ndarray,
-                    rule: ClassRule, cache_bytes: int) -> tuple[np.ndarray, np.ndarray]:
-    """Points, and points `rule` keeps whole, per sub-cell (crowded, SUB_CELLS, SUB_CELLS) of the crowded
-    cells among the given rows (one piece's share of those cells), read a row chunk at a time."""
+def sort_crowded(slices: tuple[Slice, ...], store_path: str, grid: DensityGrid, crowded: np.ndarray,
+                 rule: ClassRule, cache_bytes: int) -> SubCellBuckets:
+    """Copy one piece's rows in the crowded cells (`slices`, all of one piece) into the store sorted by
+    sub-cell, so the tiles that split those cells read only their own sub-cells; return the copy's
+    sub-cell starts and the points per sub-cell `rule` keeps whole. Holds at most the piece's rows."""
     store = TileStore.open(Path(store_path))
     scales, offsets = stored_scaling(store)
-    counts = np.zeros((len(crowded), SUB_CELLS, SUB_CELLS), dtype=np.int64)
-    protected = np.zeros_like(counts)
-    for part in store.stream(slices, cache_bytes):
-        xyz = scaled_xyz(part.records, scales, offsets)
-        counts += grid.sub_count(xyz, crowded)
-        protected += grid.sub_count(xyz[rule.protected(part.records)], crowded)
-    return counts, protected
+    stored = store.load(slices, cache_bytes)
+    buckets = bucket_by_sub_cell(stored.records, stored.index, scaled_xyz(stored.records, scales, offsets),
+                                 rule.protected(stored.records), grid, crowded)
+    store.write_piece(slices[0].piece, buckets.rows, crowded=True)
+    return SubCellBuckets(np.empty((0, buckets.rows.shape[1]), np.uint8), buckets.starts, buckets.protected)
 
 
 @dataclass(frozen=True)

@@ -1,9 +1,10 @@
 """Out-of-core bucketing (core partition, halos) and the seam pass (exact counts, no close pairs)."""
 import numpy as np
+import pytest
 from scipy.spatial import cKDTree
 
-from tiling.bucket import bucket_by_cell, cell_boxes, row_ranges
-from tiling.plan import DensityGrid, plan_tiles, summed_cells
+from tiling.bucket import bucket_by_cell, bucket_by_sub_cell, cell_boxes, halo_slices, row_ranges
+from tiling.plan import SUB_CELLS, DensityGrid, crowded_cells, plan_tiles, summed_cells
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
 import tiling.store as store_module
 from tiling.store import Slice, TileStore
@@ -11,9 +12,12 @@ from tiling.store import Slice, TileStore
 RECORD = np.dtype([("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("intensity", "<u2")])
 
 
-def scan_pieces(n: int, size: int, seed: int = 0):
+def scan_pieces(n: int, size: int, seed: int = 0, standpoint: int = 0):
+    """n points over 100 x 60 m (the last `standpoint` of them within 1 m of (40.3, 20.3)), as LAS-like
+    records of mm integers; pieces of `size` points: (first global index, records, xyz)."""
     rng = np.random.default_rng(seed)
     xyz = rng.uniform([0, 0, 0], [100, 60, 5], size=(n, 3))
+    xyz[n - standpoint:] = rng.normal([40.3, 20.3, 1], [0.3, 0.3, 1], size=(standpoint, 3))
     records = np.zeros(n, RECORD)
     for axis, name in enumerate("XYZ"):
         records[name] = np.rint(xyz[:, axis] * 1000)
@@ -22,8 +26,12 @@ def scan_pieces(n: int, size: int, seed: int = 0):
     return [(start, records[start:start + size], xyz[start:start + size]) for start in range(0, n, size)], xyz
 
 
-def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path):
-    pieces, xyz = scan_pieces(30_000, 7_000)
+@pytest.mark.parametrize("standpoint", [0, 12_000])
+def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path, standpoint):
+    """Pieces stored by cell (and, for cells the plan splits, copied by sub-cell): every tile's slices
+    hold its whole core and halo, records intact; a tile in a split cell reads its own sub-cells, not
+    the whole cell."""
+    pieces, xyz = scan_pieces(30_000 + standpoint, 7_000, standpoint=standpoint)
     grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=20)
     store = TileStore.create(tmp_path / "t.zarr", RECORD, {})
     index = []
@@ -35,18 +43,37 @@ def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path):
         count_parts.append(buckets.counts)
         index.append(buckets)
     cells, counts = summed_cells(cell_parts, count_parts)
-    plan = plan_tiles(grid, cells, counts, max_points=1_500)
+    crowded = crowded_cells(cells, counts, 1_500)
+    copies = {}
+    for number, (first, records, points) in enumerate(pieces):
+        inside = np.isin(grid.cell_of(points), crowded)
+        copies[number] = bucket_by_sub_cell(records[inside], first + np.flatnonzero(inside), points[inside],
+                                            np.zeros(inside.sum(), bool), grid, crowded)
+        store.write_piece(number, copies[number].rows, crowded=True)
+    plan = plan_tiles(grid, cells, counts, 1_500, sum(c.counts for c in copies.values()) if len(crowded) else None)
     assert counts.sum() == len(xyz) and sum(t.count for t in plan.tiles) == len(xyz)
+    assert all(t.count <= 1_500 for t in plan.tiles) and (len(plan.split_cells) > 0) == (standpoint > 0)
     reopened = TileStore.open(tmp_path / "t.zarr")
     seen_core = np.zeros(len(xyz), dtype=int)
     overlap = 1.5
+    in_split = np.isin(grid.cell_of(xyz), plan.split_cells)
+    if standpoint:  # each split cell's mean spacing: the square root of its occupied sub-cells' area per point
+        si, sj = grid.sub_cell_of(xyz[in_split])
+        occupied = {(c, a, b) for c, a, b in zip(grid.cell_of(xyz[in_split]).tolist(), si.tolist(), sj.tolist())}
+        spacing = {c: np.sqrt(sum(1 for o in occupied if o[0] == c) * (grid.cell / SUB_CELLS) ** 2
+                              / counts[cells == c][0]) for c in plan.split_cells.tolist()}
+        split_reach = np.array([64 * spacing.get(c, 0.0) for c in grid.cell_of(xyz).tolist()])
+        assert 0 < split_reach.max() < overlap  # the standpoint's halo is narrower than the others'
+    else:
+        split_reach = np.zeros(len(xyz))
     for tile_id, tile in enumerate(plan.tiles):
-        slices = [Slice(number, int(lo), int(hi)) for number, b in enumerate(index)
-                  for lo, hi in row_ranges(b.cells, b.starts, plan.halo_cell_ranges(tile_id, overlap))]
+        slices = [s for number, b in enumerate(index)
+                  for s in halo_slices(plan, tile_id, overlap, number, b, copies[number] if len(crowded) else None)]
         for cache in (0, 10**8):
             stored = reopened.load(slices, cache)
-            # records survive byte for byte and match their global index; order is file order within a piece
+            # records survive byte for byte and match their global index
             assert (stored.records["intensity"] == stored.index % 65536).all()
+        assert len(np.unique(stored.index)) == len(stored.index)  # no row read twice
         p = xyz[stored.index]
         np.testing.assert_array_equal(np.column_stack([stored.records[a] for a in "XYZ"]) / 1000.0, p)
         core = plan.core_mask(tile_id, p)
@@ -54,9 +81,14 @@ def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path):
         assert core.sum() == tile.count
         seen_core[stored.index[core]] += 1
         x0, y0, x1, y1 = plan.bounds(tile_id)
-        near = (xyz[:, 0] >= x0 - overlap) & (xyz[:, 0] < x1 + overlap) & (xyz[:, 1] >= y0 - overlap) \
-            & (xyz[:, 1] < y1 + overlap)
+        reach = np.where(in_split, np.minimum(overlap, split_reach), overlap)  # a split cell is seen less deep
+        near = (xyz[:, 0] >= x0 - reach) & (xyz[:, 0] < x1 + reach) & (xyz[:, 1] >= y0 - reach) \
+            & (xyz[:, 1] < y1 + reach)
         assert set(np.flatnonzero(near)) == set(stored.index[seen].tolist())  # the whole halo, nothing more
+        wider = reach + 3 * grid.cell / SUB_CELLS  # of split cells, only the sub-cells the halo meets are read
+        near_wider = (xyz[:, 0] >= x0 - wider) & (xyz[:, 0] < x1 + wider) & (xyz[:, 1] >= y0 - wider) \
+            & (xyz[:, 1] < y1 + wider) & in_split
+        assert sum(s.stop - s.start for s in slices if s.crowded) <= near_wider.sum()
 
         def in_halo(part):
             return plan.halo_mask(plan.core_mask(tile_id, xyz[part.index]), tile_id, xyz[part.index], overlap)

@@ -87,7 +87,7 @@ def test_the_chunk_cache_shared_by_threads_keeps_its_budget_and_its_rows():
         return np.full(1_000, key, dtype=np.int64)  # 8,000 bytes
 
     def fetch(key: int) -> bool:
-        return bool((cache.get(("store", 0, key), budget, lambda: chunk(key)) == key).all())
+        return bool((cache.get(("store", "p0", key), budget, lambda: chunk(key)) == key).all())
 
     with ThreadPoolExecutor(4) as pool:
         correct = list(pool.map(fetch, [k // 4 % 60 for k in range(3_000)]))  # four threads want each chunk

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from tiling.budgets import target_count, tile_budgets
+from tiling.budgets import grouped_budgets, target_count, tile_budgets
 from tiling.plan import SUB_CELLS, DensityGrid, crowded_cells, plan_tiles
 
 
@@ -72,6 +72,23 @@ def test_a_crowded_cell_is_split_on_its_sub_cells_into_tiles_under_the_limit():
     assert plan.per_tile(counts, grid.sub_count(xyz, crowded)).tolist() == [t.count for t in plan.tiles]
     unsplit = plan_tiles(grid, cells, counts, 2_000)  # without sub-cell counts: the old plan, a tile per crowded cell
     assert max(t.count for t in unsplit.tiles) > 2_000 and all(t.sub is None for t in unsplit.tiles)
+
+
+def test_a_split_cells_tiles_share_the_budget_the_whole_cell_would_get():
+    """Tiles grouped (a crowded cell split for memory) get together what the cell would as one tile,
+    shared in proportion to their weights; ungrouped tiles are budgeted exactly as by tile_budgets."""
+    counts = np.array([500, 4_000, 3_000, 1_000, 10, 700])
+    floors = np.array([50, 40, 40, 40, 5, 60])
+    weights = np.array([600.0, 4_400, 3_300, 1_100, 10, 700])
+    groups = np.array([0, 1, 1, 1, 4, 5])  # tiles 1-3: one cell's parts
+    grouped = grouped_budgets(counts, 0.1, groups, floors, weights)
+    whole = tile_budgets(np.array([500, 8_000, 10, 700]), 0.1, np.array([50, 120, 5, 60]),
+                         np.array([600.0, 8_800, 10, 700]))
+    assert grouped.sum() == target_count(0.1, int(counts.sum()))
+    assert grouped[[0, 4, 5]].tolist() == whole[[0, 2, 3]].tolist() and grouped[1:4].sum() == whole[1]
+    assert np.abs(grouped[1:4] - whole[1] * weights[1:4] / weights[1:4].sum()).max() < 1  # by weight, not floor
+    alone = np.arange(len(counts))
+    assert grouped_budgets(counts, 0.1, alone, floors, weights).tolist() == tile_budgets(counts, 0.1, floors, weights).tolist()
 
 
 def test_all_identical_points_make_one_tile():

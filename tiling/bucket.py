@@ -1,14 +1,15 @@
 """The bucketing pass, fused with the density count: each piece of the scan is written once, its rows
 sorted by fine grid cell, so any tile's core+halo is a few row ranges of each piece (one input decode
-instead of two; halo points are not duplicated on disk)."""
+instead of two; halo points are not duplicated on disk). A piece's rows in crowded cells (split by the
+plan) are also copied sorted by sub-cell, so a tile reads only the sub-cells it needs of them."""
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from tiling.plan import DensityGrid
-from tiling.store import encode_rows
+from tiling.plan import SUB_CELLS, DensityGrid, TilePlan
+from tiling.store import Slice, encode_rows
 
 
 @dataclass(frozen=True)
@@ -35,10 +36,93 @@ def bucket_by_cell(records: np.ndarray, xyz: np.ndarray, first: int, grid: Densi
                        np.append(starts, len(sorted_cells)))
 
 
+@dataclass(frozen=True)
+class SubCellBuckets:
+    """A piece's rows in the crowded cells sorted by cell, then by sub-cell along a Z-order curve (so a
+    quadtree tile's sub-cells are one run of rows, and a halo's a few): sub-cell (si, sj) of crowded cell
+    c is rows[starts[b]:starts[b + 1]], b = c * SUB_CELLS**2 + z_order(si, sj); `protected`: per
+    sub-cell (crowded, SUB_CELLS, SUB_CELLS), the points a class rule keeps whole."""
+
+    rows: np.ndarray
+    starts: np.ndarray
+    protected: np.ndarray
+
+    @property
+    def counts(self) -> np.ndarray:
+        """(crowded, SUB_CELLS, SUB_CELLS) points per sub-cell."""
+        si, sj = np.meshgrid(np.arange(SUB_CELLS), np.arange(SUB_CELLS), indexing="ij")
+        along_curve = np.diff(self.starts).reshape(len(self.protected), SUB_CELLS**2)
+        return along_curve[:, z_order(si, sj)]
+
+
+def bucket_by_sub_cell(records: np.ndarray, index: np.ndarray, xyz: np.ndarray, protected: np.ndarray,
+                       grid: DensityGrid, crowded: np.ndarray) -> SubCellBuckets:
+    """Sort a piece's rows in the sorted `crowded` cells (all of `records`, global `index`, `xyz` lie in
+    them) by sub-cell, keeping their order within a sub-cell; `protected`: (n,) kept whole by a class rule."""
+    si, sj = grid.sub_cell_of(xyz)
+    cell = np.searchsorted(crowded, grid.cell_of(xyz))
+    bucket = cell * SUB_CELLS**2 + z_order(si, sj)
+    order = np.argsort(bucket, kind="stable")
+    slots = len(crowded) * SUB_CELLS**2
+    starts = np.searchsorted(bucket[order], np.arange(slots + 1))
+    flat = (cell * SUB_CELLS + si) * SUB_CELLS + sj
+    kept_whole = np.bincount(flat[protected], minlength=slots).reshape(len(crowded), SUB_CELLS, SUB_CELLS)
+    return SubCellBuckets(encode_rows(records[order], index[order]), starts, kept_whole)
+
+
+def z_order(si: np.ndarray, sj: np.ndarray) -> np.ndarray:
+    """The position of sub-cells (si, sj) along a Z-order (Morton) curve over SUB_CELLS x SUB_CELLS: their
+    bits interleaved, si's first."""
+    code = np.zeros(np.shape(si), dtype=np.int64)
+    for bit in range(int(np.log2(SUB_CELLS))):
+        code |= ((np.asarray(si) >> bit) & 1) << (2 * bit + 1) | ((np.asarray(sj) >> bit) & 1) << (2 * bit)
+    return code
+
+
+def halo_slices(plan: TilePlan, tile_id: int, overlap: float, piece: int, buckets: CellBuckets,
+                crowded: SubCellBuckets | None) -> list[Slice]:
+    """The slices of one piece holding a tile's core and halo (a superset: the reader keeps what lies
+    within `overlap` of the core): the piece's rows in the halo's cells, and in cells the plan split
+    only those of the sub-cells the halo meets, from the piece's crowded copy."""
+    cell_ranges = plan.halo_cell_ranges(tile_id, overlap)
+    slices = [Slice(piece, int(lo), int(hi))
+              for lo, hi in row_ranges(buckets.cells, buckets.starts, without_cells(cell_ranges, plan.split_cells))]
+    if crowded is None:
+        return slices
+    for k, cell in enumerate(plan.split_cells):
+        if not ((cell_ranges[:, 0] <= cell) & (cell < cell_ranges[:, 1])).any():
+            continue
+        si0, si1, sj0, sj1 = plan.halo_sub_rect(tile_id, int(cell), overlap)
+        si, sj = np.meshgrid(np.arange(si0, si1), np.arange(sj0, sj1), indexing="ij")
+        bucket = k * SUB_CELLS**2 + np.sort(z_order(si.ravel(), sj.ravel()))
+        ranges = np.column_stack([crowded.starts[bucket], crowded.starts[bucket + 1]])
+        slices += [Slice(piece, int(lo), int(hi), crowded=True) for lo, hi in merged(ranges)]
+    return slices
+
+
+def without_cells(cell_ranges: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """Flat cell ranges (n, 2) [lo, hi) with the given sorted cells cut out of them."""
+    if len(cells) == 0:
+        return cell_ranges
+    kept = []
+    for lo, hi in cell_ranges.tolist():
+        for cell in cells[(cells >= lo) & (cells < hi)].tolist():
+            kept.append((lo, cell))
+            lo = cell + 1
+        kept.append((lo, hi))
+    return np.array([(lo, hi) for lo, hi in kept if hi > lo], dtype=np.int64).reshape(-1, 2)
+
+
 def row_ranges(cells: np.ndarray, starts: np.ndarray, cell_ranges: np.ndarray) -> np.ndarray:
     """Row ranges (n, 2) of a piece covering flat cell ranges [lo, hi), empty and adjacent ones merged."""
     lo = starts[np.searchsorted(cells, cell_ranges[:, 0])]
     hi = starts[np.searchsorted(cells, cell_ranges[:, 1])]
+    return merged(np.column_stack([lo, hi]))
+
+
+def merged(ranges: np.ndarray) -> np.ndarray:
+    """Row ranges (n, 2) in ascending order with the empty ones dropped and adjacent ones joined."""
+    lo, hi = ranges[:, 0], ranges[:, 1]
     keep = hi > lo
     lo, hi = lo[keep], hi[keep]
     if len(lo) == 0:

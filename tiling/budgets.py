@@ -19,9 +19,35 @@ def tile_budgets(counts: np.ndarray, ratio: float, floors: np.ndarray | None = N
     Quotas are min(count, max(floor, c * weight)) with c chosen so they sum to the target (floors scaled
     down if they alone exceed it); integers by the largest-remainder method, ties to the lower tile id.
     """
+    return shared_budgets(counts, target_count(ratio, int(np.sum(counts))), floors, weights)
+
+
+def grouped_budgets(counts: np.ndarray, ratio: float, groups: np.ndarray, floors: np.ndarray | None = None,
+                    weights: np.ndarray | None = None) -> np.ndarray:
+    """tile_budgets with the tiles of a group (groups: (tiles,) ids; the tiles a split cell became) budgeted
+    as one tile, as the unsplit cell would have been, then its budget shared among them in proportion to
+    their weights, at least a point each: splitting a crowded cell for memory leaves its points' shares as
+    they were (budgeted one by one, each part's floor would pull them towards even spacing)."""
     counts = np.asarray(counts, dtype=np.int64)
     weights = counts.astype(np.float64) if weights is None else np.asarray(weights, dtype=np.float64)
-    target = target_count(ratio, int(counts.sum()))
+    floors = np.zeros_like(counts) if floors is None else np.asarray(floors, dtype=np.int64)
+    ids, members = np.unique(groups, return_inverse=True)
+    if len(ids) == len(counts):
+        return tile_budgets(counts, ratio, floors, weights)
+    totals = tile_budgets(np.bincount(members, counts, len(ids)).astype(np.int64), ratio,
+                          np.bincount(members, floors, len(ids)).astype(np.int64), np.bincount(members, weights, len(ids)))
+    budgets = np.zeros_like(counts)
+    for group, total in enumerate(totals):
+        tiles = np.flatnonzero(members == group)
+        budgets[tiles] = shared_budgets(counts[tiles], int(total), np.minimum(counts[tiles], 1), weights[tiles])
+    return budgets
+
+
+def shared_budgets(counts: np.ndarray, target: int, floors: np.ndarray | None = None,
+                   weights: np.ndarray | None = None) -> np.ndarray:
+    """tile_budgets for a given total `target` (at most counts.sum())."""
+    counts = np.asarray(counts, dtype=np.int64)
+    weights = counts.astype(np.float64) if weights is None else np.asarray(weights, dtype=np.float64)
     floors = np.zeros_like(counts) if floors is None else np.minimum(np.asarray(floors, dtype=np.int64), counts)
     if floors.sum() >= target:
         return largest_remainder(floors * (target / max(int(floors.sum()), 1)), floors, target)

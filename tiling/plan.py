@@ -18,6 +18,7 @@ CELLS_PER_TILE = 8       # a nominal tile is 8x8 cells: three quadtree splits be
 MAX_AXIS_CELLS = 2**31   # per axis, so flat cell ids (i * ny + j) fit int64
 SUB_CELLS = 64           # a crowded cell is split on 64 x 64 sub-cells (tile_size / 512 a side)
 SPLIT = -2               # cell_tiles' mark for a split cell: its sub-cells name the tiles
+HALO_SPACINGS = 64       # a halo reaches into a split cell at most this many of the cell's mean point spacings
 
 
 @dataclass(frozen=True)
@@ -105,6 +106,7 @@ class TilePlan:
     cell_tiles: np.ndarray  # (occupied,) int32 id of the tile holding each (SPLIT for a split cell)
     split_cells: np.ndarray = field(default_factory=lambda: np.empty(0, dtype=np.int64))  # (k,) sorted flat ids
     sub_tiles: np.ndarray = field(default_factory=lambda: np.empty((0, SUB_CELLS, SUB_CELLS), dtype=np.int32))
+    split_reach: np.ndarray = field(default_factory=lambda: np.empty(0))  # (k,) HALO_SPACINGS of each one's spacing
 
     def tile_of(self, xy: np.ndarray) -> np.ndarray:
         """The id of the tile whose core holds each point (-1 for a point in a cell no tile holds)."""
@@ -129,6 +131,16 @@ class TilePlan:
         s = c / SUB_CELLS
         return (ox + t.i0 * c + si0 * s, oy + t.j0 * c + sj0 * s, ox + t.i0 * c + si1 * s, oy + t.j0 * c + sj1 * s)
 
+    def budget_groups(self) -> np.ndarray:
+        """(tiles,) a group id per tile: the tiles of one split cell share one (their cell's first tile), every
+        other tile is its own group (tiling.budgets.grouped_budgets)."""
+        groups = np.arange(len(self.tiles))
+        for tile_id, tile in enumerate(self.tiles):
+            if tile.sub is not None and tile_id > 0 and self.tiles[tile_id - 1].sub is not None \
+                    and (self.tiles[tile_id - 1].i0, self.tiles[tile_id - 1].j0) == (tile.i0, tile.j0):
+                groups[tile_id] = groups[tile_id - 1]
+        return groups
+
     def per_tile(self, per_cell: np.ndarray, per_sub_cell: np.ndarray | None = None) -> np.ndarray:
         """(tiles,) sums of a count given per occupied cell (occupied,) and, for split cells, per sub-cell
         (k, SUB_CELLS, SUB_CELLS): the tiles' share of it."""
@@ -151,15 +163,38 @@ class TilePlan:
         rows = np.arange(i0, i1, dtype=np.int64) * self.grid.shape[1]
         return np.column_stack([rows + j0, rows + j1])
 
+    def halo_sub_rect(self, tile_id: int, cell: int, overlap: float) -> tuple[int, int, int, int]:
+        """Sub-cells [si0, si1) x [sj0, sj1) of split cell `cell` (a flat id) that the tile's halo reaches
+        (halo_mask), one sub-cell wider on each side than the arithmetic says, so rounding never leaves one out."""
+        x0, y0, x1, y1 = self.bounds(tile_id)
+        i, j = divmod(cell, self.grid.shape[1])
+        (ox, oy), c = self.grid.origin, self.grid.cell
+        sub = c / SUB_CELLS
+        reach = min(overlap, float(self.split_reach[np.searchsorted(self.split_cells, cell)]))
+
+        def span(lo: float, hi: float, start: float) -> tuple[int, int]:
+            first = int(np.clip(np.floor((lo - reach - start) / sub) - 1, 0, SUB_CELLS))
+            return first, int(np.clip(np.floor((hi + reach - start) / sub) + 2, first, SUB_CELLS))
+
+        return (*span(x0, x1, ox + i * c), *span(y0, y1, oy + j * c))
+
     def core_mask(self, tile_id: int, xyz: np.ndarray) -> np.ndarray:
         """Which points the tile owns (tile_of's rule, so ownership has one definition)."""
         return self.tile_of(xyz) == tile_id
 
     def halo_mask(self, core: np.ndarray, tile_id: int, xyz: np.ndarray, overlap: float) -> np.ndarray:
-        """Core points plus those within `overlap` of the core rectangle: what the tile's simplifier sees."""
+        """Core points plus those within `overlap` of the core rectangle: what the tile's simplifier sees.
+        Of a split cell's points, only those within its `split_reach` (if nearer): its points are so dense
+        that `overlap` would hold many times a tile's limit, and their neighbours lie far closer."""
         x0, y0, x1, y1 = self.bounds(tile_id)
+        reach = np.full(len(xyz), float(overlap))
+        if len(self.split_cells):
+            ids = self.grid.cell_of(xyz)
+            at = np.minimum(np.searchsorted(self.split_cells, ids), len(self.split_cells) - 1)
+            split = self.split_cells[at] == ids
+            reach[split] = np.minimum(overlap, self.split_reach[at[split]])
         x, y = xyz[:, 0], xyz[:, 1]
-        return core | ((x >= x0 - overlap) & (x < x1 + overlap) & (y >= y0 - overlap) & (y < y1 + overlap))
+        return core | ((x >= x0 - reach) & (x < x1 + reach) & (y >= y0 - reach) & (y < y1 + reach))
 
 
 def plan_tiles(grid: DensityGrid, cells: np.ndarray, counts: np.ndarray, max_points: int,
@@ -200,7 +235,15 @@ def plan_tiles(grid: DensityGrid, cells: np.ndarray, counts: np.ndarray, max_poi
                 continue
             cell_tiles[members[inside]] = len(tiles)
             tiles.append(tile)
-    return TilePlan(grid, tuple(tiles), cells, cell_tiles, crowded, sub_tiles)
+    return TilePlan(grid, tuple(tiles), cells, cell_tiles, crowded, sub_tiles,
+                    split_reach(grid, sub_counts) if len(crowded) else np.empty(0))
+
+
+def split_reach(grid: DensityGrid, sub_counts: np.ndarray) -> np.ndarray:
+    """(k,) how far a halo reaches into each split cell: HALO_SPACINGS of its mean point spacing, the
+    square root of its occupied sub-cells' area per point."""
+    area = (sub_counts > 0).sum(axis=(1, 2)) * (grid.cell / SUB_CELLS) ** 2
+    return HALO_SPACINGS * np.sqrt(area / np.maximum(sub_counts.sum(axis=(1, 2)), 1))
 
 
 def crowded_cells(cells: np.ndarray, counts: np.ndarray, max_points: int) -> np.ndarray:

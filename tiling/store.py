@@ -34,11 +34,22 @@ class StoredPoints:
 
 @dataclass(frozen=True)
 class Slice:
-    """Rows [start, stop) of piece `piece`'s array."""
+    """Rows [start, stop) of piece `piece`'s array, or of its crowded-cell copy (sorted by sub-cell)."""
 
     piece: int
     start: int
     stop: int
+    crowded: bool = False
+
+    @property
+    def array(self) -> str:
+        """The name of the stored array the rows are in."""
+        return array_name(self.piece, self.crowded)
+
+
+def array_name(piece: int, crowded: bool = False) -> str:
+    """Piece n's rows are array `pn`; its rows in crowded cells, sorted by sub-cell, are `cn`."""
+    return f"{'c' if crowded else 'p'}{piece}"
 
 
 class ChunkCache:
@@ -50,12 +61,12 @@ class ChunkCache:
     """
 
     def __init__(self) -> None:
-        self._arrays: OrderedDict[tuple[str, int, int], np.ndarray] = OrderedDict()
+        self._arrays: OrderedDict[tuple[str, str, int], np.ndarray] = OrderedDict()
         self._bytes = 0
         self.reads = 0  # chunks read from the store by this process (a cache miss each)
         self._lock = threading.Lock()  # an in-process run's task threads share the cache
 
-    def get(self, key: tuple[str, int, int], budget: int, read: Callable[[], np.ndarray]) -> np.ndarray:
+    def get(self, key: tuple[str, str, int], budget: int, read: Callable[[], np.ndarray]) -> np.ndarray:
         """The cached chunk, or read it and cache it if it fits the budget (evicting older chunks)."""
         with self._lock:
             if key in self._arrays:
@@ -73,11 +84,24 @@ class ChunkCache:
                 self._bytes += array.nbytes
         return array
 
-    def _drop(self, key: tuple[str, int, int]) -> None:
+    def _drop(self, key: tuple[str, str, int]) -> None:
         self._bytes -= self._arrays.pop(key).nbytes
 
 
 CHUNKS = ChunkCache()  # one per process: a Dask worker keeps it across the tasks of a run
+
+
+def joined(parts: Sequence[StoredPoints]) -> StoredPoints:
+    """Several parts' points, one after another."""
+    if len(parts) == 1:
+        return parts[0]
+    return StoredPoints(np.concatenate([p.records for p in parts]), np.concatenate([p.index for p in parts]))
+
+
+def filtered(parts: Sequence[StoredPoints], keep: Callable[[StoredPoints], np.ndarray]) -> StoredPoints:
+    """The points of several parts that `keep` keeps, filtered at once."""
+    gathered = joined(parts)
+    return gathered.of(keep(gathered))
 
 
 def encode_rows(records: np.ndarray, index: np.ndarray) -> np.ndarray:
@@ -103,7 +127,7 @@ class TileStore:
         self.path = path
         self.record_dtype = record_dtype
         self._group = group
-        self._pieces: dict[int, zarr.Array] = {}
+        self._arrays: dict[str, zarr.Array] = {}
 
     @classmethod
     def create(cls, path: Path, record_dtype: np.dtype, attrs: dict) -> "TileStore":
@@ -123,24 +147,25 @@ class TileStore:
         """What the creator stored beside the rows (scales, offsets, ...)."""
         return dict(self._group.attrs)
 
-    def write_piece(self, piece: int, rows: np.ndarray) -> None:
-        """Store one bucketed piece's rows (uncompressed: the store is short-lived and I/O is not the cost)."""
-        array = self._group.create_array(f"p{piece}", shape=rows.shape, dtype="uint8", overwrite=True,
+    def write_piece(self, piece: int, rows: np.ndarray, crowded: bool = False) -> None:
+        """Store one bucketed piece's rows, or (`crowded`) its copy of the rows in crowded cells
+        (uncompressed: the store is short-lived and I/O is not the cost)."""
+        array = self._group.create_array(array_name(piece, crowded), shape=rows.shape, dtype="uint8", overwrite=True,
                                          chunks=(min(ROW_CHUNK, max(len(rows), 1)), rows.shape[1]),
                                          compressors=None)
         array[:] = rows
 
-    def _piece(self, number: int) -> zarr.Array:
-        if number not in self._pieces:
-            self._pieces[number] = self._group[f"p{number}"]
-        return self._pieces[number]
+    def _array(self, name: str) -> zarr.Array:
+        if name not in self._arrays:
+            self._arrays[name] = self._group[name]
+        return self._arrays[name]
 
     def _cached_rows(self, s: Slice, cache_bytes: int) -> Iterator[np.ndarray]:
         """The slice's rows, chunk by chunk through the process's chunk cache."""
-        array = self._piece(s.piece)
+        array = self._array(s.array)
         for chunk in range(s.start // ROW_CHUNK, (s.stop - 1) // ROW_CHUNK + 1):
             first = chunk * ROW_CHUNK
-            rows = CHUNKS.get((str(self.path), s.piece, chunk), cache_bytes,
+            rows = CHUNKS.get((str(self.path), s.array, chunk), cache_bytes,
                               lambda: array[first:first + ROW_CHUNK])
             yield rows[max(s.start - first, 0):s.stop - first]
 
@@ -154,17 +179,30 @@ class TileStore:
                 yield from map(self._points, self._cached_rows(s, cache_bytes))
             else:
                 for first in range(s.start, s.stop, ROW_CHUNK):
-                    yield self._points(self._piece(s.piece)[first:min(first + ROW_CHUNK, s.stop)])
+                    yield self._points(self._array(s.array)[first:min(first + ROW_CHUNK, s.stop)])
 
     def load(self, slices: Sequence[Slice], cache_bytes: int = 0,
              keep: Callable[[StoredPoints], np.ndarray] | None = None) -> StoredPoints:
         """The rows of the given slices, in the order given; row chunks are cached up to cache_bytes. With
         `keep` (a row chunk's points -> a boolean mask), only the rows it keeps, chunk by chunk, so the
         memory is what is kept, not what the slices span."""
-        parts = [part if keep is None else part.of(keep(part)) for part in self.stream(slices, cache_bytes)]
+        parts = list(self.stream(slices, cache_bytes) if keep is None else self._kept(slices, cache_bytes, keep))
         if not parts:
             return self._points(np.empty((0, self.record_dtype.itemsize + TAIL), np.uint8))
-        return StoredPoints(np.concatenate([p.records for p in parts]), np.concatenate([p.index for p in parts]))
+        return joined(parts)
+
+    def _kept(self, slices: Sequence[Slice], cache_bytes: int,
+              keep: Callable[[StoredPoints], np.ndarray]) -> Iterator[StoredPoints]:
+        """What `keep` keeps of the slices' rows, filtered about ROW_CHUNK rows at a time (small slices
+        gathered first: a filter call costs about as much for 100 rows as for 10,000)."""
+        batch: list[StoredPoints] = []
+        for part in self.stream(slices, cache_bytes):
+            batch.append(part)
+            if sum(len(p.index) for p in batch) >= ROW_CHUNK:
+                yield filtered(batch, keep)
+                batch = []
+        if batch:
+            yield filtered(batch, keep)
 
     def _points(self, rows: np.ndarray) -> StoredPoints:
         """Records and global indices of stored rows."""
