@@ -35,7 +35,7 @@ from pipeline.copc_output import COPC_SPILL_COPIES, copc_point_format
 from pipeline.writers import COPC_SUFFIX, OUTPUT_SUFFIXES, write_output
 from tiling.budgets import (coverage_weights, even_spacing, grouped_budgets, nested_budgets, pooled_median,
                             saliency_weights, target_count, voxels_at)
-from tiling.bucket import SubCellBuckets, cell_boxes, halo_slices, row_ranges
+from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice, TileStore
 
@@ -301,13 +301,14 @@ def bucket_scan(client: Client | Executor, scan: Scan, pieces: list[Piece], work
         i0, i1, j0, j1 = plan.halo_cell_rect(tile_id, seen_overlap(config))
         meets = np.flatnonzero((boxes[:, 0] < i1) & (boxes[:, 1] > i0) & (boxes[:, 2] < j1) & (boxes[:, 3] > j0))
         slices.append([s for k in meets for s in halo_slices(plan, tile_id, seen_overlap(config), pieces[k].number,
-                                                             buckets[k], copies.get(pieces[k].number))])
+                                                             buckets[k].cells, buckets[k].starts,
+                                                             copies.get(pieces[k].number))])
     return plan, slices, whole, np.sum([b.classes for b in buckets], axis=0)
 
 
 def sort_crowded_cells(client: Client | Executor, crowded: np.ndarray, pieces: list[Piece],
                        buckets: list[BucketedPiece], grid: DensityGrid, work: WorkDir, config: RunConfig,
-                       rule: ClassRule, progress: Progress) -> dict[int, SubCellBuckets]:
+                       rule: ClassRule, progress: Progress) -> dict[int, SubCellIndex]:
     """Each piece's rows in the cells over the tile limit, copied sorted by sub-cell (one task per piece
     holding any): the sub-cell starts of each copy by piece number, from which the plan splits those
     cells and their tiles read only their own sub-cells. Empty when no cell is crowded."""

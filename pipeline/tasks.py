@@ -19,7 +19,7 @@ from model.stratified import pick_spacings
 from pipeline.scan import Piece, Scan, scaled_xyz
 from pipeline.classes import ClassRule, class_histogram
 from pipeline.workdir import BucketedPiece, WorkDir, save_npz, write_atomically
-from tiling.bucket import SubCellBuckets, bucket_by_cell, bucket_by_sub_cell
+from tiling.bucket import SubCellIndex, bucket_by_cell, bucket_by_sub_cell
 from tiling.budgets import occupied_voxels, target_count
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, StoredPoints, TileStore
@@ -120,17 +120,17 @@ def stored_scaling(store: TileStore) -> tuple[np.ndarray, np.ndarray]:
 
 
 def sort_crowded(slices: tuple[Slice, ...], store_path: str, grid: DensityGrid, crowded: np.ndarray,
-                 rule: ClassRule, cache_bytes: int) -> SubCellBuckets:
+                 rule: ClassRule, cache_bytes: int) -> SubCellIndex:
     """Copy one piece's rows in the crowded cells (`slices`, all of one piece) into the store sorted by
-    sub-cell, so the tiles that split those cells read only their own sub-cells; return the copy's
-    sub-cell starts and the points per sub-cell `rule` keeps whole. Holds at most the piece's rows."""
+    sub-cell, so the tiles that split those cells read only their own sub-cells; return where the copy
+    holds each sub-cell and the points per sub-cell `rule` keeps whole. Holds at most the piece's rows."""
     store = TileStore.open(Path(store_path))
     scales, offsets = stored_scaling(store)
     stored = store.load(slices, cache_bytes)
-    buckets = bucket_by_sub_cell(stored.records, stored.index, scaled_xyz(stored.records, scales, offsets),
-                                 rule.protected(stored.records), grid, crowded)
-    store.write_piece(slices[0].piece, buckets.rows, crowded=True)
-    return SubCellBuckets(np.empty((0, buckets.rows.shape[1]), np.uint8), buckets.starts, buckets.protected)
+    rows, index = bucket_by_sub_cell(stored.records, stored.index, scaled_xyz(stored.records, scales, offsets),
+                                     rule.protected(stored.records), grid, crowded)
+    store.write_piece(slices[0].piece, rows, crowded=True)
+    return index
 
 
 @dataclass(frozen=True)

@@ -47,9 +47,9 @@ def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path, standp
     copies = {}
     for number, (first, records, points) in enumerate(pieces):
         inside = np.isin(grid.cell_of(points), crowded)
-        copies[number] = bucket_by_sub_cell(records[inside], first + np.flatnonzero(inside), points[inside],
-                                            np.zeros(inside.sum(), bool), grid, crowded)
-        store.write_piece(number, copies[number].rows, crowded=True)
+        rows, copies[number] = bucket_by_sub_cell(records[inside], first + np.flatnonzero(inside), points[inside],
+                                                  np.zeros(inside.sum(), bool), grid, crowded)
+        store.write_piece(number, rows, crowded=True)
     plan = plan_tiles(grid, cells, counts, 1_500, sum(c.counts for c in copies.values()) if len(crowded) else None)
     assert counts.sum() == len(xyz) and sum(t.count for t in plan.tiles) == len(xyz)
     assert all(t.count <= 1_500 for t in plan.tiles) and (len(plan.split_cells) > 0) == (standpoint > 0)
@@ -68,7 +68,8 @@ def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path, standp
         split_reach = np.zeros(len(xyz))
     for tile_id, tile in enumerate(plan.tiles):
         slices = [s for number, b in enumerate(index)
-                  for s in halo_slices(plan, tile_id, overlap, number, b, copies[number] if len(crowded) else None)]
+                  for s in halo_slices(plan, tile_id, overlap, number, b.cells, b.starts,
+                                       copies[number] if len(crowded) else None)]
         for cache in (0, 10**8):
             stored = reopened.load(slices, cache)
             # records survive byte for byte and match their global index

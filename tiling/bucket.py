@@ -37,13 +37,13 @@ def bucket_by_cell(records: np.ndarray, xyz: np.ndarray, first: int, grid: Densi
 
 
 @dataclass(frozen=True)
-class SubCellBuckets:
-    """A piece's rows in the crowded cells sorted by cell, then by sub-cell along a Z-order curve (so a
-    quadtree tile's sub-cells are one run of rows, and a halo's a few): sub-cell (si, sj) of crowded cell
-    c is rows[starts[b]:starts[b + 1]], b = c * SUB_CELLS**2 + z_order(si, sj); `protected`: per
-    sub-cell (crowded, SUB_CELLS, SUB_CELLS), the points a class rule keeps whole."""
+class SubCellIndex:
+    """Where a piece's copy of its rows in the crowded cells holds each sub-cell: the rows are sorted by
+    cell, then by sub-cell along a Z-order curve (so a quadtree tile's sub-cells are one run of rows, and
+    a halo's a few): sub-cell (si, sj) of crowded cell c is rows starts[b]:starts[b + 1], b = c *
+    SUB_CELLS**2 + z_order(si, sj); `protected`: (crowded, SUB_CELLS, SUB_CELLS) points a class rule
+    keeps whole per sub-cell."""
 
-    rows: np.ndarray
     starts: np.ndarray
     protected: np.ndarray
 
@@ -56,9 +56,10 @@ class SubCellBuckets:
 
 
 def bucket_by_sub_cell(records: np.ndarray, index: np.ndarray, xyz: np.ndarray, protected: np.ndarray,
-                       grid: DensityGrid, crowded: np.ndarray) -> SubCellBuckets:
-    """Sort a piece's rows in the sorted `crowded` cells (all of `records`, global `index`, `xyz` lie in
-    them) by sub-cell, keeping their order within a sub-cell; `protected`: (n,) kept whole by a class rule."""
+                       grid: DensityGrid, crowded: np.ndarray) -> tuple[np.ndarray, SubCellIndex]:
+    """A piece's rows in the sorted `crowded` cells (all of `records`, global `index`, `xyz` lie in them)
+    encoded and sorted by sub-cell, their order kept within a sub-cell, and where each sub-cell's rows
+    are; `protected`: (n,) kept whole by a class rule."""
     si, sj = grid.sub_cell_of(xyz)
     cell = np.searchsorted(crowded, grid.cell_of(xyz))
     bucket = cell * SUB_CELLS**2 + z_order(si, sj)
@@ -67,7 +68,7 @@ def bucket_by_sub_cell(records: np.ndarray, index: np.ndarray, xyz: np.ndarray, 
     starts = np.searchsorted(bucket[order], np.arange(slots + 1))
     flat = (cell * SUB_CELLS + si) * SUB_CELLS + sj
     kept_whole = np.bincount(flat[protected], minlength=slots).reshape(len(crowded), SUB_CELLS, SUB_CELLS)
-    return SubCellBuckets(encode_rows(records[order], index[order]), starts, kept_whole)
+    return encode_rows(records[order], index[order]), SubCellIndex(starts, kept_whole)
 
 
 def z_order(si: np.ndarray, sj: np.ndarray) -> np.ndarray:
@@ -79,14 +80,14 @@ def z_order(si: np.ndarray, sj: np.ndarray) -> np.ndarray:
     return code
 
 
-def halo_slices(plan: TilePlan, tile_id: int, overlap: float, piece: int, buckets: CellBuckets,
-                crowded: SubCellBuckets | None) -> list[Slice]:
-    """The slices of one piece holding a tile's core and halo (a superset: the reader keeps what lies
-    within `overlap` of the core): the piece's rows in the halo's cells, and in cells the plan split
-    only those of the sub-cells the halo meets, from the piece's crowded copy."""
+def halo_slices(plan: TilePlan, tile_id: int, overlap: float, piece: int, cells: np.ndarray, starts: np.ndarray,
+                crowded: SubCellIndex | None) -> list[Slice]:
+    """The slices of one piece (its occupied `cells` and their row `starts`, as CellBuckets) holding a
+    tile's core and halo, a superset of what plan.halo_mask keeps: the piece's rows in the halo's cells,
+    and of cells the plan split only the sub-cells the halo reaches, from the piece's crowded copy."""
     cell_ranges = plan.halo_cell_ranges(tile_id, overlap)
     slices = [Slice(piece, int(lo), int(hi))
-              for lo, hi in row_ranges(buckets.cells, buckets.starts, without_cells(cell_ranges, plan.split_cells))]
+              for lo, hi in row_ranges(cells, starts, without_cells(cell_ranges, plan.split_cells))]
     if crowded is None:
         return slices
     for k, cell in enumerate(plan.split_cells):
