@@ -5,8 +5,9 @@
 Simulates one scanner standpoint (points thinning with range, 70 % ground and 30 % walls to 4 m, the
 densest 6.25 m grid cell holding about a third of them), then runs `pipeline run` (2 workers) at each
 `--max-tile-points`, measured over the process tree. The plan splits every cell over the limit on its
-sub-cells, so the largest tile, each task's memory and the tree's peak follow the limit, not the
-standpoint. Prints the plan's largest tile and largest core+halo (what a task holds) beside wall and peak.
+sub-cells, so the largest tile and what a task holds follow the limit, not the standpoint, and the
+tree's peak is set by the other settings (bucketing pieces, the chunk cache). Prints the plan's largest
+tile and largest core plus `--overlap` halo (what a `learned` task holds) beside wall and peak.
 """
 from __future__ import annotations
 
