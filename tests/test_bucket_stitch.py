@@ -3,7 +3,8 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from tiling.bucket import bucket_by_cell, bucket_by_sub_cell, cell_boxes, halo_slices, row_ranges
+from tiling.bucket import (bucket_by_cell, bucket_by_sub_cell, cell_boxes, cells_within, halo_slices, row_ranges,
+                           without_cells)
 from tiling.plan import SUB_CELLS, DensityGrid, crowded_cells, plan_tiles, summed_cells
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
 import tiling.store as store_module
@@ -120,6 +121,18 @@ def test_chunk_cache_returns_the_same_rows_within_its_budget(tmp_path, monkeypat
     reads = store_module.CHUNKS.reads
     store.load(slices[-1:], budget)
     assert store_module.CHUNKS.reads == reads  # the last slice's chunks are still cached
+
+
+def test_split_cells_are_cut_out_of_cell_ranges():
+    """A halo's cell ranges lose the split cells (read from their sorted copy instead): at a range's
+    start, middle and end, in a one-cell range, and in adjacent ranges; cells outside stay untouched."""
+    ranges = np.array([[0, 10], [10, 20], [40, 41]])
+    split = np.array([0, 5, 9, 10, 40, 50])
+    assert without_cells(ranges, split).tolist() == [[1, 5], [6, 9], [11, 20]]
+    assert without_cells(ranges, np.array([30, 60])).tolist() == ranges.tolist()
+    assert cells_within(split, ranges).tolist() == [0, 1, 2, 3, 4]
+    kept = {c for lo, hi in without_cells(ranges, split).tolist() for c in range(lo, hi)}
+    assert kept == {c for lo, hi in ranges.tolist() for c in range(lo, hi)} - set(split.tolist())
 
 
 def test_row_ranges_merge_adjacent_and_skip_empty():

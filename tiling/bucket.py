@@ -90,10 +90,8 @@ def halo_slices(plan: TilePlan, tile_id: int, overlap: float, piece: int, cells:
               for lo, hi in row_ranges(cells, starts, without_cells(cell_ranges, plan.split_cells))]
     if crowded is None:
         return slices
-    for k, cell in enumerate(plan.split_cells):
-        if not ((cell_ranges[:, 0] <= cell) & (cell < cell_ranges[:, 1])).any():
-            continue
-        si0, si1, sj0, sj1 = plan.halo_sub_rect(tile_id, int(cell), overlap)
+    for k in cells_within(plan.split_cells, cell_ranges):
+        si0, si1, sj0, sj1 = plan.halo_sub_rect(tile_id, int(plan.split_cells[k]), overlap)
         si, sj = np.meshgrid(np.arange(si0, si1), np.arange(sj0, sj1), indexing="ij")
         bucket = k * SUB_CELLS**2 + np.sort(z_order(si.ravel(), sj.ravel()))
         ranges = np.column_stack([crowded.starts[bucket], crowded.starts[bucket + 1]])
@@ -101,17 +99,21 @@ def halo_slices(plan: TilePlan, tile_id: int, overlap: float, piece: int, cells:
     return slices
 
 
+def cells_within(cells: np.ndarray, cell_ranges: np.ndarray) -> np.ndarray:
+    """Positions in sorted `cells` of those inside the ascending, disjoint flat ranges (n, 2) [lo, hi)."""
+    first, last = np.searchsorted(cells, cell_ranges[:, 0]), np.searchsorted(cells, cell_ranges[:, 1])
+    return np.concatenate([np.arange(a, b) for a, b in zip(first.tolist(), last.tolist()) if b > a] or
+                          [np.empty(0, dtype=np.int64)])
+
+
 def without_cells(cell_ranges: np.ndarray, cells: np.ndarray) -> np.ndarray:
-    """Flat cell ranges (n, 2) [lo, hi) with the given sorted cells cut out of them."""
-    if len(cells) == 0:
+    """Flat cell ranges (n, 2) [lo, hi), ascending and disjoint, with the given sorted cells cut out."""
+    cut = cells[cells_within(cells, cell_ranges)]
+    if len(cut) == 0:
         return cell_ranges
-    kept = []
-    for lo, hi in cell_ranges.tolist():
-        for cell in cells[(cells >= lo) & (cells < hi)].tolist():
-            kept.append((lo, cell))
-            lo = cell + 1
-        kept.append((lo, hi))
-    return np.array([(lo, hi) for lo, hi in kept if hi > lo], dtype=np.int64).reshape(-1, 2)
+    edges = np.sort(np.concatenate([cell_ranges.ravel(), cut, cut + 1]))  # each cut cell ends one range, starts one
+    pieces = edges.reshape(-1, 2)
+    return pieces[pieces[:, 1] > pieces[:, 0]]
 
 
 def row_ranges(cells: np.ndarray, starts: np.ndarray, cell_ranges: np.ndarray) -> np.ndarray:
