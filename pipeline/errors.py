@@ -16,8 +16,8 @@ class PipelineError(Exception):
 
 
 class PipelineNote(UserWarning):
-    """Something a run says and goes on (lengths converted or metres assumed, a class with no points, a grid
-    cell over the tile limit): `pipeline run` prints it on stderr, `pipeline.run` warns with it."""
+    """Something a run says and goes on (lengths converted or metres assumed, a class with no points, a
+    sub-cell over the tile limit): `pipeline run` prints it on stderr, `pipeline.run` warns with it."""
 
 
 def file_system_error(exc: OSError, path: str | Path | None = None) -> PipelineError:

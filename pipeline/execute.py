@@ -86,7 +86,7 @@ def map_tasks(client: Client | Executor, function: Callable, items: Sequence[Any
                 if isinstance(exc, KilledWorker):
                     raise PipelineError(f"{desc}: the workers running one task died again and again, most likely out "
                                         "of memory: raise --memory-limit or lower --max-tile-points (or --tile-size, "
-                                        "if the run noted a grid cell over that limit)") from None
+                                        "if the run noted a sub-cell over that limit)") from None
                 raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
             results[position.pop(future.key)] = result
             phase.update(1, weight(result))

@@ -135,10 +135,10 @@ class TilePlan:
         """(tiles,) a group id per tile: the tiles of one split cell share one (their cell's first tile), every
         other tile is its own group (tiling.budgets.grouped_budgets)."""
         groups = np.arange(len(self.tiles))
+        first: dict[tuple[int, int], int] = {}
         for tile_id, tile in enumerate(self.tiles):
-            if tile.sub is not None and tile_id > 0 and self.tiles[tile_id - 1].sub is not None \
-                    and (self.tiles[tile_id - 1].i0, self.tiles[tile_id - 1].j0) == (tile.i0, tile.j0):
-                groups[tile_id] = groups[tile_id - 1]
+            if tile.sub is not None:
+                groups[tile_id] = first.setdefault((tile.i0, tile.j0), tile_id)
         return groups
 
     def per_tile(self, per_cell: np.ndarray, per_sub_cell: np.ndarray | None = None) -> np.ndarray:
@@ -187,12 +187,11 @@ class TilePlan:
         Of a split cell's points, only those within its `split_reach` (if nearer): its points are so dense
         that `overlap` would hold many times a tile's limit, and their neighbours lie far closer."""
         x0, y0, x1, y1 = self.bounds(tile_id)
-        reach = np.full(len(xyz), float(overlap))
-        if len(self.split_cells):
+        reach: float | np.ndarray = overlap
+        if len(self.split_cells):  # a reach per point only where a cell is split (no cost on other scans)
             ids = self.grid.cell_of(xyz)
             at = np.minimum(np.searchsorted(self.split_cells, ids), len(self.split_cells) - 1)
-            split = self.split_cells[at] == ids
-            reach[split] = np.minimum(overlap, self.split_reach[at[split]])
+            reach = np.where(self.split_cells[at] == ids, np.minimum(overlap, self.split_reach[at]), overlap)
         x, y = xyz[:, 0], xyz[:, 1]
         return core | ((x >= x0 - reach) & (x < x1 + reach) & (y >= y0 - reach) & (y < y1 + reach))
 
@@ -227,16 +226,24 @@ def plan_tiles(grid: DensityGrid, cells: np.ndarray, counts: np.ndarray, max_poi
             split = np.searchsorted(crowded, tile.i0 * ny + tile.j0) if len(crowded) else 0
             if tile.count > max_points and split < len(crowded) and crowded[split] == tile.i0 * ny + tile.j0:
                 cell_tiles[members[inside]] = SPLIT
-                for part in split_block(sub_counts[split], max_points):
-                    sub_tiles[split, part.i0:part.i1, part.j0:part.j1][sub_counts[split, part.i0:part.i1,
-                                                                                   part.j0:part.j1] > 0] = len(tiles)
-                    tiles.append(TileRect(tile.i0, tile.i1, tile.j0, tile.j1, part.count,
-                                          part.occupied / SUB_CELLS**2, (part.i0, part.i1, part.j0, part.j1)))
+                tiles += split_cell(tile, sub_counts[split], max_points, sub_tiles[split], len(tiles))
                 continue
             cell_tiles[members[inside]] = len(tiles)
             tiles.append(tile)
     return TilePlan(grid, tuple(tiles), cells, cell_tiles, crowded, sub_tiles,
                     split_reach(grid, sub_counts) if len(crowded) else np.empty(0))
+
+
+def split_cell(cell: TileRect, sub_counts: np.ndarray, max_points: int, sub_tiles: np.ndarray,
+               first_id: int) -> list[TileRect]:
+    """The tiles of one crowded cell (a 1x1 TileRect): its (SUB_CELLS, SUB_CELLS) sub-cell counts quartered
+    like cells; each occupied sub-cell's entry of `sub_tiles` is set to its tile's id, from `first_id`."""
+    parts = split_block(sub_counts, max_points)
+    for tile_id, part in enumerate(parts, start=first_id):
+        rows, columns = slice(part.i0, part.i1), slice(part.j0, part.j1)
+        sub_tiles[rows, columns][sub_counts[rows, columns] > 0] = tile_id
+    return [TileRect(cell.i0, cell.i1, cell.j0, cell.j1, part.count, part.occupied / SUB_CELLS**2,
+                     (part.i0, part.i1, part.j0, part.j1)) for part in parts]
 
 
 def split_reach(grid: DensityGrid, sub_counts: np.ndarray) -> np.ndarray:
