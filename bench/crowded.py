@@ -75,7 +75,7 @@ def main() -> None:
         for limit in (int(value) for value in args.limits.split(",")):
             tiles, largest, held = plan_extremes(scan, limit)
             for method in args.methods.split(","):
-                command = [sys.executable, "-m", "pipeline.cli", "run", str(scan), "--ratio", "0.1", "-o",
+                command = [sys.executable, "-m", "pipeline.apps.cli", "run", str(scan), "--ratio", "0.1", "-o",
                            str(Path(temporary) / "out.laz"), "--method", method, "--workers", "2", "--overwrite",
                            "--max-tile-points", str(limit), "--tile-size", str(TILE_SIZE), "--overlap", str(OVERLAP)]
                 result = measure(command)

@@ -65,7 +65,7 @@ def largest_tile(paths: list[Path], tile_size: float = 50.0) -> tuple[int, int, 
 
 
 def run(paths: list[Path], method: str, out: Path) -> Measured:
-    command = [sys.executable, "-m", "pipeline.cli", "run", *map(str, paths), "--ratio", "0.1", "-o", str(out),
+    command = [sys.executable, "-m", "pipeline.apps.cli", "run", *map(str, paths), "--ratio", "0.1", "-o", str(out),
                "--method", method, "--workers", "2", "--overwrite"]
     result = measure(command)
     if result.returncode != 0:

@@ -37,7 +37,8 @@ from model.baselines import fps_simplify, random_simplify  # noqa: E402
 from model.detail import predicted_fill_loss  # noqa: E402
 from model.geometry import morton_order, point_features  # noqa: E402
 from model.metrics import nearest, quality  # noqa: E402
-from model.selection import FillLoss, kept_count  # noqa: E402
+from model.rules import kept_count  # noqa: E402
+from model.selection import FillLoss  # noqa: E402
 from model.stratified import fill_weights, filled_and_covered, hole_cover, weighted_picks  # noqa: E402
 
 RADII = (1.0, 1.25, 1.5, 2.0, 3.0, np.inf)  # hole radius over FPS's p99

@@ -7,7 +7,7 @@ by each of `workers` threads of one process, then by each of `workers` processes
 calls on one thread. Each worker holds one BLAS/OpenMP thread, as pipeline workers do. Amdahl's law on the
 two speed-ups gives the share f of a call that holds the GIL (processes set the machine's own efficiency),
 and what f means for more cores: the reason scans up to `in_process_points` run on threads
-(pipeline/threads.py) and larger ones on a cluster.
+(pipeline/engine/threads.py) and larger ones on a cluster.
 """
 from __future__ import annotations
 
@@ -27,7 +27,7 @@ import numpy as np  # noqa: E402
 from model.registry import get_simplifier  # noqa: E402
 from model.selection import Tile  # noqa: E402
 from pipeline.simulate import write_street_scan  # noqa: E402
-from pipeline.threads import available_cores  # noqa: E402
+from pipeline.engine.threads import available_cores  # noqa: E402
 
 RATIO = 0.1
 

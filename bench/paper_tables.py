@@ -32,11 +32,11 @@ import pipeline  # noqa: E402
 from model import Tile, get_simplifier  # noqa: E402
 from model.baselines import uniform_vertices  # noqa: E402
 from model.geometry import point_features  # noqa: E402
-from model.learned import WEIGHTS  # noqa: E402
+from model.learning import PAPER_WEIGHTS  # noqa: E402
 from model.meshes import list_meshes, load_mesh, mesh_name  # noqa: E402
 from model.metrics import quality  # noqa: E402
 from model.qem import qem_vertices  # noqa: E402
-from model.selection import kept_count  # noqa: E402
+from model.rules import kept_count  # noqa: E402
 
 DEFAULT_DATA = HERE.parents[1] / "shared" / "data"
 PROGRESSIVE = ("tcp", "fps", "paper", "paper-refined")
@@ -95,7 +95,7 @@ def mesh_scores(vertices: np.ndarray, faces: np.ndarray, ratios: list[float]) ->
 
 def tosca_table(data: Path, ratios: list[float], limit: int | None) -> list[str]:
     """Markdown lines: ours beside the paper's, per ratio and method, means over the test split."""
-    test = torch.load(WEIGHTS, map_location="cpu", weights_only=False)["record"]["test"][:limit]
+    test = torch.load(PAPER_WEIGHTS, map_location="cpu", weights_only=False)["record"]["test"][:limit]
     paths = {mesh_name(p): p for p in list_meshes(data / "meshes" / "tosca")}
     totals: dict[tuple[str, float], list[dict]] = {}
     for number, name in enumerate(test, start=1):

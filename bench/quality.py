@@ -38,10 +38,10 @@ from model.baselines import fps_simplify  # noqa: E402
 from model.geometry import point_features  # noqa: E402
 from model.metrics import nearest, quality  # noqa: E402
 from pipeline.config import build_config  # noqa: E402
-from pipeline.execute import cluster  # noqa: E402
-from pipeline.runner import run_scan  # noqa: E402
+from pipeline.engine.execute import cluster  # noqa: E402
+from pipeline.engine.runner import run_scan  # noqa: E402
 from pipeline.simulate import LABELS, PARTS, surface_parts, write_street_scan  # noqa: E402
-from tiling.budgets import target_count  # noqa: E402
+from model.rules import kept_count  # noqa: E402
 
 DEFAULT_DATA = HERE.parents[1] / "shared" / "data" / "lidar"
 SCANS = ("bcts_1.laz", "bcts_2.laz", "bcts_3.laz", "bcts_4.laz", "autzen_trim.laz", "lone-star.laz",
@@ -230,7 +230,7 @@ def run_bench(scans: list[str], ratios: list[float], methods: list[str], peer: b
             xyz -= xyz.mean(axis=0)
             features = point_features(xyz)
             for ratio in ratios:
-                count = target_count(ratio, len(xyz))
+                count = kept_count(ratio, len(xyz))
                 picks: dict[str, np.ndarray] = {}
                 for method in methods:
                     output = work / f"{method}.las"

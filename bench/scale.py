@@ -50,7 +50,7 @@ def scan_of(size: int, data: Path) -> Path:
 
 def run(scan: Path, method: str, workers: int, ratio: float, out_dir: Path) -> Measured:
     """One `pipeline run` of the scan, measured over its process tree."""
-    command = [sys.executable, "-m", "pipeline.cli", "run", str(scan), "--ratio", str(ratio), "-o",
+    command = [sys.executable, "-m", "pipeline.apps.cli", "run", str(scan), "--ratio", str(ratio), "-o",
                str(out_dir / f"{scan.stem}-{method}-{workers}.laz"), "--method", method, "--workers", str(workers),
                "--overwrite", "-v", "--scratch", str(out_dir / "scratch")]
     (out_dir / "scratch").mkdir(exist_ok=True)

@@ -126,7 +126,7 @@ def scan_of(name: str, data: Path, work: Path) -> Scan | None:
 
 def pipeline_row(scan: Scan, method: str, workers: int, ratio: float, out_dir: Path, repeat: int) -> Timed:
     """`pipeline run -v` on the scan, with the phases it prints."""
-    command = [sys.executable, "-m", "pipeline.cli", "run", *map(str, scan.paths), *scan.options, "--ratio",
+    command = [sys.executable, "-m", "pipeline.apps.cli", "run", *map(str, scan.paths), *scan.options, "--ratio",
                str(ratio), "-o", str(out_dir / f"{method}-{workers}.laz"), "--method", method, "--workers",
                str(workers), "--overwrite", "-v"]
     run, slowest = best(command, repeat)

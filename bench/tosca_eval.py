@@ -1,6 +1,6 @@
 """CD, CE, RE and SDM of the learned simplifiers against FPS on the saved TOSCA test split (for the model card).
 
-    python bench/tosca_eval.py [--weights model/weights/tosca.pt] [--data DIR] [--ratios 0.2,0.1,0.05]
+    python bench/tosca_eval.py [--weights model/learning/weights/tosca.pt] [--data DIR] [--ratios 0.2,0.1,0.05]
 
 Each test mesh's vertices are simplified once per progressive method (FPS, the paper's network) at the
 largest ratio; smaller ratios are prefixes of that priority order, as the pipeline would produce them.
@@ -17,7 +17,8 @@ import torch
 
 from model import Tile, get_simplifier
 from model.geometry import point_features
-from model.learned import WEIGHTS, learned_simplify
+from model.learning import PAPER_WEIGHTS
+from model.learned import learned_simplify
 from model.meshes import list_meshes, load_mesh, mesh_name
 from model.metrics import quality
 
@@ -49,7 +50,7 @@ def evaluate(vertices: np.ndarray, ratios: list[float], weights: Path) -> dict[t
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--weights", type=Path, default=WEIGHTS)
+    parser.add_argument("--weights", type=Path, default=PAPER_WEIGHTS)
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA)
     parser.add_argument("--ratios", default="0.2,0.1,0.05")
     args = parser.parse_args()

@@ -1,5 +1,7 @@
-"""Simplifiers behind one interface (`simplify(tile, budget) -> Selection`), geometry and metrics."""
-from model.selection import Selection, Simplifier, Tile
+"""Simplifiers behind one interface (`method(tile, budget) -> Selection`, each a frozen dataclass holding its
+parameters: model.methods), geometry and metrics."""
+from model.methods import Method
 from model.registry import METHODS, get_simplifier
+from model.selection import Selection, Tile
 
-__all__ = ["METHODS", "Selection", "Simplifier", "Tile", "get_simplifier"]
+__all__ = ["METHODS", "Method", "Selection", "Tile", "get_simplifier"]

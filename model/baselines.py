@@ -5,7 +5,8 @@ import fpsample
 import numpy as np
 
 from model.geometry import curvature, knn, local_eigenvalues
-from model.selection import Selection, Tile, kept_count, topped_up
+from model.rules import kept_count
+from model.selection import Selection, Tile, topped_up
 
 FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core
 VOXEL_COUNT_SLACK = 0.02  # the searched cell may give up to 2 % more voxels than the budget; the rest are trimmed
@@ -83,9 +84,10 @@ def _fps_order(points: np.ndarray, samples: int, start: int) -> np.ndarray:
     return fpsample.bucket_fps_kdline_sampling(points, samples, h=height, start_idx=start).astype(np.int64)
 
 
-def voxel_simplify(tile: Tile, budget: int) -> Selection:
+def voxel_simplify(tile: Tile, budget: int, slack: float = VOXEL_COUNT_SLACK) -> Selection:
     """One real point per voxel (the one nearest the voxel centre), with the cell size searched so the
-    voxel count just meets the budget; voxels are aligned to the scan origin so tiles share one grid.
+    voxel count just meets the budget (at most `slack` over it); voxels are aligned to the scan origin so
+    tiles share one grid.
 
     Representatives come in seeded random order and are trimmed to the budget; if even the finest
     grid gives too few (duplicate points), the rest of the core tops the count up in random order.
@@ -95,7 +97,7 @@ def voxel_simplify(tile: Tile, budget: int) -> Selection:
     if budget == 0:
         return Selection.of(tile, np.empty(0, dtype=np.int64))
     points = tile.xyz[core] + tile.centre
-    cell = _cell_for_budget(points, budget)
+    cell = _cell_for_budget(points, budget, slack)
     reps = core[_voxel_representatives(points, cell)]
     rng = np.random.default_rng(tile.seed)
     return Selection.of(tile, topped_up(rng.permutation(reps), core, budget, rng))
@@ -110,8 +112,8 @@ def _voxel_keys(points: np.ndarray, cell: float, mins: np.ndarray, maxs: np.ndar
     return (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
 
 
-def _cell_for_budget(points: np.ndarray, budget: int) -> float:
-    """A cell size whose occupied-voxel count is at least the budget and at most VOXEL_COUNT_SLACK above it.
+def _cell_for_budget(points: np.ndarray, budget: int, slack: float) -> float:
+    """A cell size whose occupied-voxel count is at least the budget and at most `slack` (a share) above it.
 
     The count falls roughly as a power of the cell size, so each step interpolates in log-log space
     between a cell known to give enough voxels and one known to give too few (a few steps, not 20).
@@ -124,12 +126,12 @@ def _cell_for_budget(points: np.ndarray, budget: int) -> float:
         return len(np.unique(_voxel_keys(points, cell, mins, maxs)))
 
     low, low_count = finest, count(finest)
-    if extent == 0 or low_count <= budget * (1 + VOXEL_COUNT_SLACK):
+    if extent == 0 or low_count <= budget * (1 + slack):
         return low
     high, high_count = extent * 2, 1  # one voxel holds everything
     if high_count >= budget:
         return high
-    while high / low > 1 + 1e-9 and low_count > budget * (1 + VOXEL_COUNT_SLACK):
+    while high / low > 1 + 1e-9 and low_count > budget * (1 + slack):
         share = (np.log(low_count) - np.log(budget)) / (np.log(low_count) - np.log(high_count))
         mid = float(np.exp(np.log(low) + np.clip(share, 0.05, 0.95) * np.log(high / low)))
         mid_count = count(mid)

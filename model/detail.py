@@ -1,4 +1,4 @@
-"""The learned curvature-loss predictor behind `--method learned` (trained on TOSCA: model/detail_training.py).
+"""The learned curvature-loss predictor behind `--method learned` (trained on TOSCA: model/learning/detail_training.py).
 
 Why: CE, the paper's curvature error, adds up per point how far thinning moves the mean curvature;
 model/stratified.curvature_loss measures that for one even thinning of a tile, a noisy sample (another
@@ -19,10 +19,10 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from model.geometry import FRAME_POINTS, local_features, roughness
-from model.selection import FillLoss, Selection, Tile
-from model.stratified import curvature_loss, stratified_selection
+from model.learning import DETAIL_WEIGHTS
+from model.selection import FillLoss, Tile
+from model.stratified import curvature_loss
 
-WEIGHTS = Path(__file__).resolve().parent / "weights" / "detail.npz"  # exported from detail.pt, the training record
 SOFTPLUS_LINEAR = 20.0  # torch's softplus returns its input above this
 DESCRIPTORS = 12
 HIDDEN = 32
@@ -98,7 +98,7 @@ def relative(loss: np.ndarray, cap: float = 20.0) -> np.ndarray:
 
 @dataclass(frozen=True)
 class DetailWeights:
-    """The trained predictor as numpy arrays (what model/detail_net.py's network holds): descriptor shift and
+    """The trained predictor as numpy arrays (what model/learning/detail_net.py's network holds): descriptor shift and
     spread (12,), and three dense layers (out, in) with biases, ReLU between, softplus last."""
 
     shift: np.ndarray
@@ -123,7 +123,7 @@ class DetailWeights:
 
 
 @lru_cache(maxsize=2)
-def load_detail_weights(path: Path = WEIGHTS) -> DetailWeights:
+def load_detail_weights(path: Path = DETAIL_WEIGHTS) -> DetailWeights:
     """The shipped predictor (an .npz exported by `pipeline train-detail` beside its .pt): no torch needed,
     so workers of the default method never import it (1.6 s and about 180 MB each)."""
     if not path.is_file():
@@ -134,12 +134,12 @@ def load_detail_weights(path: Path = WEIGHTS) -> DetailWeights:
         return DetailWeights(saved["shift"], saved["spread"], layers)
 
 
-def predicted_loss(tile: Tile, budget: int, path: Path = WEIGHTS) -> np.ndarray:
+def predicted_loss(tile: Tile, budget: int, path: Path = DETAIL_WEIGHTS) -> np.ndarray:
     """(n,) expected curvature loss of each tile point, over the mean, for an even thinning to `budget`."""
     return predicted_fill_loss(tile, budget, path).relative
 
 
-def predicted_fill_loss(tile: Tile, budget: int, path: Path = WEIGHTS) -> FillLoss:
+def predicted_fill_loss(tile: Tile, budget: int, path: Path = DETAIL_WEIGHTS) -> FillLoss:
     """The expected loss of each tile point (n,) over its core mean, 0 in the halo, and that mean in K
     units (the measured mean times the prediction's core mean, since the network predicts relative to
     the measured mean)."""
@@ -150,9 +150,3 @@ def predicted_fill_loss(tile: Tile, budget: int, path: Path = WEIGHTS) -> FillLo
     if core_mean <= 0:
         return FillLoss(np.zeros_like(predicted), 0.0)
     return FillLoss(predicted / core_mean, core_mean * measured_level)
-
-
-def learned_detail_simplify(tile: Tile, budget: int, path: Path = WEIGHTS) -> Selection:
-    """Stratified fill and cover, the fill weighted by the predicted curvature loss (see module doc); a
-    run's `tile.context` holds the prediction made in its survey, so none is made here then."""
-    return stratified_selection(tile, budget, lambda tile, budget: predicted_fill_loss(tile, budget, path))

@@ -98,7 +98,7 @@ def local_frames(xyz: np.ndarray, nbrs: Neighbours,
     xyz[rows] (every point when None) over its neighbours `nbrs` (m rows).
 
     As the paper writes it, C_i = sum_j (p_j - p_i)(p_j - p_i)^T over the neighbours j of i, centred on
-    the point, not on the neighbourhood mean as in Pauly et al.'s surface variation (model/losses.py
+    the point, not on the neighbourhood mean as in Pauly et al.'s surface variation (model/learning/losses.py
     mirrors this choice in torch; change both together). Measured on a sampled cube, the difference:
     about the point, edges and corners score alike (median kappa of points at exact edges 0.17, exact
     corners 0.14, faces 0) and a point's own offset from the surface adds to its kappa (plane with 1e-4

@@ -1,4 +1,4 @@
-"""The trained network behind the simplifier interface (`--method learned`)."""
+"""The paper's trained network behind the simplifier interface (`--method paper`, `paper-refined`)."""
 from __future__ import annotations
 
 from functools import lru_cache
@@ -9,17 +9,17 @@ import numpy as np
 import torch
 
 from model.baselines import farthest_core_picks
-from model.checkpoint import load_trained
-from model.network import LearnedSimplifier, knn_graph, latent_fps, normalise, row_blocks
+from model.learning import PAPER_WEIGHTS
+from model.learning.checkpoint import load_trained
+from model.learning.network import LearnedSimplifier, knn_graph, latent_fps, normalise, row_blocks
 from model.selection import Selection, Tile
 
-WEIGHTS = Path(__file__).resolve().parent / "weights" / "tosca.pt"
 REDUCED_DIMS = 8  # fpsample's bucket FPS handles at most 8 dimensions
 PCA_SAMPLE = 4096  # about this many feature rows (an even stride) fix the principal axes
 
 
 @lru_cache(maxsize=2)
-def load_model(path: Path = WEIGHTS) -> LearnedSimplifier:
+def load_model(path: Path = PAPER_WEIGHTS) -> LearnedSimplifier:
     """The network with trained weights, in inference mode, BatchNorm (running statistics) folded in."""
     model = load_trained(LearnedSimplifier(), path, "pipeline train")
     model.projector.fold_batchnorm()
@@ -55,7 +55,7 @@ def exact_latent_order(features: torch.Tensor, tile: Tile, budget: int) -> np.nd
 
 
 @torch.no_grad()
-def learned_simplify(tile: Tile, budget: int, weights: Path = WEIGHTS, exact: bool = False,
+def learned_simplify(tile: Tile, budget: int, weights: Path = PAPER_WEIGHTS, exact: bool = False,
                      graph: np.ndarray | None = None, refine: bool = False) -> Selection:
     """Latent FPS over core+halo until `budget` core picks, then (if `refine`) each pick moved by the
     attention refinement over its neighbourhood; without it the picks keep their measured positions.

@@ -15,7 +15,7 @@ from __future__ import annotations
 import fast_simplification
 import numpy as np
 
-from model.selection import kept_count
+from model.rules import kept_count
 
 REPLAY_TRIES = 4  # replays of a shorter prefix if the replay's clean-up merged stray vertices
 

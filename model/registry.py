@@ -1,64 +1,64 @@
-"""Method names to simplifier callables: the one switch behind `--method`."""
+"""Method names to simplifiers with their default parameters: the one switch behind `--method`, a config
+file's `[method.<name>]` table and the API's `method_parameters`."""
 from __future__ import annotations
 
-from model.baselines import fps_simplify, random_simplify, tcp_simplify, voxel_simplify
-from model.selection import FillLoss, Selection, Simplifier, Tile
-from model.stratified import LossOf, measured_detail_simplify, measured_loss, no_loss, stratified_simplify
+from dataclasses import fields, replace
+from pathlib import Path
+from typing import Any
 
+from model.methods import Fill, Fps, Learned, MeasuredDetail, Method, Paper, Random, TopCurvature, Voxel
 
-def learned_simplify(tile: Tile, budget: int) -> Selection:
-    """The default: the stratified fill weighted by the curvature loss the TOSCA-trained predictor expects
-    (model/detail.py), run in numpy: no torch in its workers."""
-    from model.detail import learned_detail_simplify
-
-    return learned_detail_simplify(tile, budget)
-
-
-def learned_loss(tile: Tile, budget: int) -> FillLoss:
-    """The default's fill weights: the predicted curvature loss (model/detail.py)."""
-    from model.detail import predicted_fill_loss
-
-    return predicted_fill_loss(tile, budget)
-
-
-def paper_simplify(tile: Tile, budget: int) -> Selection:
-    """The paper's network: latent-FPS picks at their measured positions (model/learned.py)."""
-    from model.learned import learned_simplify as simplify
-
-    return simplify(tile, budget)
-
-
-def paper_refined_simplify(tile: Tile, budget: int) -> Selection:
-    """The paper's whole model: the same picks, moved by the attention refinement (CD 1.5-3.2x higher on
-    the TOSCA test split for the same CE; see the model card)."""
-    from model.learned import learned_simplify as simplify
-
-    return simplify(tile, budget, refine=True)
-
-
-_SIMPLIFIERS: dict[str, Simplifier] = {
-    "fps": fps_simplify,
-    "voxel": voxel_simplify,
-    "random": random_simplify,
-    "tcp": tcp_simplify,
-    "stratified": stratified_simplify,
-    "stratified-detail": measured_detail_simplify,
-    "learned": learned_simplify,
-    "paper": paper_simplify,
-    "paper-refined": paper_refined_simplify,
+REGISTERED: dict[str, Method] = {
+    "fps": Fps(),
+    "voxel": Voxel(),
+    "random": Random(),
+    "tcp": TopCurvature(),
+    "stratified": Fill(),
+    "stratified-detail": MeasuredDetail(),
+    "learned": Learned(),
+    "paper": Paper(),
+    "paper-refined": Paper(refine=True),
 }
-PAPER = ("paper", "paper-refined")  # the paper's network: mesh mode gives its GNN the mesh adjacency
-EVEN_SPACING = ("fps", "voxel")  # methods that space points evenly: tile budgets follow covered volume, not counts
-CORE_ONLY = ("fps", "voxel", "random")  # methods that never look at a tile's halo: their tiles load their core only
-FILL_LOSSES: dict[str, LossOf] = {"stratified": no_loss, "stratified-detail": measured_loss, "learned": learned_loss}
-"""Stratified methods and their fill weights: a run surveys every tile first, so weights, cover radius
-and tile budgets are set for the whole scan (model.selection.FillContext), as one pass over it would."""
-METHODS = tuple(_SIMPLIFIERS)
+METHODS = tuple(REGISTERED)
+PARAMETER_KINDS = {bool: "true or false", int: "a whole number", float: "a number", Path: "a file path"}
 
 
-def get_simplifier(method: str) -> Simplifier:
-    """The simplifier registered under `method` (KeyError names the known ones)."""
+def get_simplifier(method: str, **parameters: Any) -> Method:
+    """The simplifier registered under `method`, with `parameters` replacing its defaults (ValueError names
+    the known methods, an unknown parameter or a value of the wrong kind)."""
     try:
-        return _SIMPLIFIERS[method]
+        default = REGISTERED[method]
     except KeyError:
-        raise KeyError(f"unknown method {method!r}; known: {', '.join(METHODS)}") from None
+        raise ValueError(f"unknown method {method!r}; known: {', '.join(METHODS)}") from None
+    known = {f.name: type(getattr(default, f.name)) for f in fields(default)}
+    unknown = sorted(set(parameters) - set(known))
+    if unknown:
+        takes = ", ".join(known) or "no parameters"
+        raise ValueError(f"method {method!r} has no parameter {', '.join(map(repr, unknown))} (it takes: {takes})")
+    return replace(default, **{name: typed(name, value, known[name]) for name, value in parameters.items()})
+
+
+def typed(name: str, value: Any, kind: type) -> Any:
+    """`value` as the parameter's kind (an int where a float goes, a string where a path goes)."""
+    if kind is Path and isinstance(value, (str, Path)):
+        return Path(value)
+    if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if isinstance(value, kind) and (kind is bool or not isinstance(value, bool)):
+        return value
+    raise ValueError(f"parameter {name!r} must be {PARAMETER_KINDS.get(kind, kind.__name__)}, got {value!r}")
+
+
+def method_name(method: Method) -> str:
+    """The name a simplifier object runs under: the first registered name of its class (its parameters
+    then say how it differs from that name's defaults)."""
+    for name, default in REGISTERED.items():
+        if type(default) is type(method):
+            return name
+    raise ValueError(f"{type(method).__name__} is not a registered method (known: {', '.join(METHODS)})")
+
+
+def changed_parameters(name: str, method: Method) -> dict[str, Any]:
+    """The parameters of `method` that differ from those registered under `name`, JSON-able."""
+    defaults = REGISTERED[name].parameters()
+    return {key: value for key, value in method.parameters().items() if defaults[key] != value}

@@ -3,7 +3,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
-from typing import Protocol
 
 import numpy as np
 
@@ -85,18 +84,6 @@ class Selection:
         """A selection that keeps source positions."""
         indices = np.asarray(indices, dtype=np.int64)
         return cls(indices, tile.xyz[indices])
-
-
-def kept_count(ratio: float, total: int) -> int:
-    """round(ratio * N), halves up, for whole clouds and meshes: tiling.budgets.target_count's rule
-    (model may not import tiling)."""
-    return min(total, int(np.floor(ratio * total + 0.5)))
-
-
-class Simplifier(Protocol):
-    """Picks `budget` core points of a tile (fewer only if the tile has fewer core points)."""
-
-    def __call__(self, tile: Tile, budget: int) -> Selection: ...
 
 
 def topped_up(order: np.ndarray, core: np.ndarray, budget: int, rng: np.random.Generator) -> np.ndarray:

@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from model.geometry import local_features
 from model.metrics import nearest
-from model.selection import FillContext, FillLoss, Selection, Tile, topped_up
+from model.selection import FillLoss, Selection, Tile, topped_up
 
 COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
 SPACING_QUANTILES = np.linspace(0.0, 1.0, 65)  # a tile reports its picks' spacing as these quantiles
@@ -51,20 +51,10 @@ def measured_loss(tile: Tile, budget: int) -> FillLoss:
     return FillLoss(loss / level if level > 0 else np.zeros_like(loss), level)
 
 
-def stratified_simplify(tile: Tile, budget: int) -> Selection:
-    """`budget` core points: a stratified uniform fill, then the holes it leaves covered (see module doc)."""
-    return stratified_selection(tile, budget, no_loss)
-
-
-def measured_detail_simplify(tile: Tile, budget: int) -> Selection:
-    """Stratified, with each point's keep weight 1 + its curvature loss over the mean (curvature_loss): the fill
-    keeps more where an even thinning would lose the mean curvature, as it is measured on this tile."""
-    return stratified_selection(tile, budget, measured_loss)
-
-
-def stratified_selection(tile: Tile, budget: int, loss_of: LossOf) -> Selection:
+def stratified_selection(tile: Tile, budget: int, loss_of: LossOf,
+                         cover_spacings: float = COVER_SPACINGS) -> Selection:
     """The fill and cover of the module doc. For a tile on its own (no `tile.context`), `loss_of(tile,
-    budget)` sets the keep weights 1 + relative loss and the cover radius is COVER_SPACINGS typical
+    budget)` sets the keep weights 1 + relative loss and the cover radius is `cover_spacings` typical
     spacings of a trial fill; a pipeline run's context holds the scan-wide weights and radius instead,
     and the prefix the run keeps (fill and cover are planned for it; the picks after it are random)."""
     context = tile.context
@@ -80,7 +70,7 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf) -> Selection:
                                                                                               context.detail_scale)
     curve_weights = curve_of(weights, curve)
     trial = weighted_picks(curve, curve_weights, planned, phase)
-    radius = COVER_SPACINGS * typical_spacing(tile.xyz[trial]) if context is None else context.cover_radius
+    radius = cover_spacings * typical_spacing(tile.xyz[trial]) if context is None else context.cover_radius
     fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase), planned,
                                      radius, len(hole_cover(tile.xyz, trial, core, radius)))
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)

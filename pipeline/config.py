@@ -9,7 +9,8 @@ from pathlib import Path
 from typing import Any
 
 import configs
-from model.registry import METHODS
+from model.methods import Method
+from model.registry import METHODS, changed_parameters, get_simplifier, method_name
 from pipeline.errors import PipelineError
 
 _SIZE = re.compile(r"^\s*([0-9]*\.?[0-9]+)\s*([KMGT]i?B|B)?\s*$", re.IGNORECASE)
@@ -38,6 +39,12 @@ class RunConfig:
     levels: tuple[float, ...] = ()  # nested outputs at these ratios from one simplification (the first is `ratio`)
     keep_classes: tuple[int, ...] = ()  # classification codes kept whole; the ratio applies to the rest
     thin_classes: tuple[int, ...] = ()  # the only codes thinned; every other point is kept whole
+    method_parameters: tuple[tuple[str, Any], ...] = ()  # (name, value) replacing the method's defaults
+
+    @property
+    def simplifier(self) -> Method:
+        """The method with its parameters, as the run's tiles call it."""
+        return get_simplifier(self.method, **dict(self.method_parameters))
 
     def in_unit(self, metres_per_unit: float) -> "RunConfig":
         """The same settings with the lengths (tile size, overlap, seam tolerance: metres) in a scan unit."""
@@ -50,6 +57,10 @@ class RunConfig:
             raise PipelineError(f"--ratio must be in (0, 1], got {self.ratio!r}")
         if self.method not in METHODS:
             raise PipelineError(f"--method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        try:
+            self.simplifier
+        except ValueError as exc:
+            raise PipelineError(f"--method {self.method}: {exc}") from None
         for name in ("tile_size", "overlap", "seam_tolerance"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0) or (name == "tile_size" and value <= 0):
@@ -114,23 +125,31 @@ def parse_size(text: str, option: str = "--memory-limit") -> int:
     return int(float(match.group(1)) * _UNITS[(match.group(2) or "b").lower()])
 
 
-def load_settings(config: str | None) -> dict[str, Any]:
-    """The [run] table of a preset name (`default`, `toronto3d`, `airborne`) or a TOML file path."""
+def load_settings(config: str | None) -> tuple[dict[str, Any], dict[str, dict[str, Any]]]:
+    """The [run] table of a preset name (`default`, `toronto3d`, `airborne`) or a TOML file path, and its
+    [method.<name>] tables: each method's parameters, used when the run uses that method."""
     if config is None:
         config = "default"
     path = configs.preset_path(config) or Path(config)
     if not path.is_file():
         raise PipelineError(f"{config}: no such config file or preset (presets: {', '.join(configs.preset_names())})")
     try:
-        table = tomllib.loads(path.read_text()).get("run", {})
+        document = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise PipelineError(f"{path}: not a valid TOML config ({exc})") from None
+    table, methods = document.get("run", {}), document.get("method", {})
     if not isinstance(table, dict):
         raise PipelineError(f"{path}: [run] must be a table of settings, got {type(table).__name__} {table!r}")
-    return checked_settings(table, f"{path}: [run]")
+    if not isinstance(methods, dict) or not all(isinstance(v, dict) for v in methods.values()):
+        raise PipelineError(f"{path}: [method] must hold one table per method, e.g. [method.voxel] slack = 0.05")
+    unknown = sorted(set(methods) - set(METHODS))
+    if unknown:
+        raise PipelineError(f"{path}: [method.{unknown[0]}]: unknown method (known: {', '.join(METHODS)})")
+    return checked_settings(table, f"{path}: [run]"), methods
 
 
-SETTING_TYPES = {f.name: f.type for f in fields(RunConfig)}  # "float", "int", "str", "bool" (postponed annotations)
+SETTING_TYPES = {f.name: f.type for f in fields(RunConfig)  # "float", "int", "str", "bool" (postponed annotations)
+                 if f.name != "method_parameters"}  # a file gives those in [method.<name>] tables
 SIZE_SETTINGS = ("memory_limit", "cache_memory")  # "2GB" or a number of bytes
 TYPE_WORDS = {"float": "a number", "int": "a whole number", "str": "a string", "bool": "true or false",
               "tuple[float, ...]": "a list of numbers", "tuple[int, ...]": "a list of whole numbers"}
@@ -158,12 +177,24 @@ def checked_settings(settings: dict[str, Any], where: str) -> dict[str, Any]:
     return settings
 
 
-def build_config(config: str | None = None, **overrides: Any) -> RunConfig:
-    """Defaults, then the preset or file, then the non-None overrides; validated."""
+def build_config(config: str | None = None, *, method: str | Method | None = None,
+                 method_parameters: dict[str, Any] | None = None, **overrides: Any) -> RunConfig:
+    """Defaults, then the preset or file, then the non-None overrides; validated. `method` is a name or a
+    simplifier object (model.methods: its parameters are kept); the method's parameters are its
+    defaults, then the file's [method.<name>] table, then the object's, then `method_parameters`."""
     base = RunConfig()
-    settings = load_settings(config)
+    settings, method_tables = load_settings(config)
     settings.update({k: v for k, v in overrides.items() if v is not None})
     settings = {k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()}
+    given: dict[str, Any] = {}
+    if isinstance(method, Method):
+        settings["method"] = method_name(method)
+        given = changed_parameters(settings["method"], method)
+    elif method is not None:
+        settings["method"] = method
+    name = settings.get("method", base.method)
+    parameters = {**method_tables.get(name, {}), **given, **(method_parameters or {})}
+    settings["method_parameters"] = tuple(sorted(parameters.items()))
     if settings.get("levels") and "ratio" not in settings:  # the first level is the ratio the run simplifies to
         settings["ratio"] = settings["levels"][0]
     try:

@@ -1,4 +1,4 @@
-"""Workers map a tile's arrays whole (pipeline.allocator): glibc then gives their memory back when they
+"""Workers map a tile's arrays whole (pipeline.engine.allocator): glibc then gives their memory back when they
 are freed, instead of serving the next ones from a heap it fragments (a worker's memory would grow
 with the tiles it has run). Checked through glibc's own count of mapped bytes, in fresh processes."""
 from __future__ import annotations
@@ -9,7 +9,7 @@ import sys
 
 import pytest
 
-from pipeline.dask_cluster import local_cluster
+from pipeline.engine.dask_cluster import local_cluster
 
 PROBE = """
 import ctypes, numpy as np
@@ -45,7 +45,7 @@ def mapped_mib(setup: str) -> int:
 
 def test_large_arrays_are_mapped_whole_after_the_setting():
     assert mapped_mib("") == 0  # glibc's default: the array comes from the heap
-    assert mapped_mib("from pipeline.allocator import map_large_arrays; assert map_large_arrays()") == 8
+    assert mapped_mib("from pipeline.engine.allocator import map_large_arrays; assert map_large_arrays()") == 8
 
 
 def worker_probe() -> int:

@@ -8,8 +8,8 @@ import pytest
 from dask.distributed import Client, LocalCluster
 
 import pipeline
-from pipeline.in_memory import progressive_order
-from tiling.budgets import target_count
+from model.rules import kept_count
+from pipeline.apps.in_memory import progressive_order
 
 
 def record_set(records: np.ndarray) -> set[bytes]:
@@ -28,7 +28,7 @@ def test_simplify_keeps_what_the_file_run_keeps(tmp_path, street_scan, client, m
     las = laspy.read(street_scan)
     settings = dict(method=method, tile_size=20.0, client=client)
     kept = pipeline.simplify(las, 0.1, **settings)
-    assert len(kept) == target_count(0.1, len(las.points)) and len(np.unique(kept)) == len(kept)
+    assert len(kept) == kept_count(0.1, len(las.points)) and len(np.unique(kept)) == len(kept)
     pipeline.run(street_scan, tmp_path / "out.las", ratio=0.1, **settings)
     assert record_set(las.points.array[kept]) == record_set(laspy.read(tmp_path / "out.las").points.array)
 
@@ -74,7 +74,7 @@ def test_the_callers_client_is_reused(tmp_path, street_scan, client):
     pipeline.run(street_scan, tmp_path / "a.laz", ratio=0.05, method="random", client=client)
     assert set(client.scheduler_info()["workers"]) == before and client.status == "running"
     summary = pipeline.info(tmp_path / "a.laz")
-    assert summary["points"] == target_count(0.05, 60_000) and summary["provenance"]["method"] == "random"
+    assert summary["points"] == kept_count(0.05, 60_000) and summary["provenance"]["method"] == "random"
     reference, scores = pipeline.evaluate(street_scan, [tmp_path / "a.laz"], sample=0)
     assert reference.unit.name == "metre" and scores[0].points == summary["points"]
 

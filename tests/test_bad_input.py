@@ -246,7 +246,7 @@ def in_private_mount(mount: Path, options: str, *args: str) -> subprocess.Comple
     mount.mkdir(exist_ok=True)
     script = 'mount -t tmpfs -o "$1" tmpfs "$2" || exit 99; mount=$2; shift 2; "$@"; rc=$?; ls -A "$MNT"; exit $rc'
     return subprocess.run(["unshare", "-Urm", "sh", "-c", script, "sh", options, str(mount),
-                           sys.executable, "-m", "pipeline.cli", *args], capture_output=True, text=True,
+                           sys.executable, "-m", "pipeline.apps.cli", *args], capture_output=True, text=True,
                           env={**os.environ, "MNT": str(mount)}, timeout=600)
 
 
@@ -307,8 +307,7 @@ class PanicException(BaseException):
                                               (KeyboardInterrupt(), KeyboardInterrupt)], ids=["panic", "ctrl-c"])
 def test_lazrs_panic_names_the_file(tmp_path, monkeypatch, raised, expected):
     """A panic while reading the header or points becomes one line naming the file; Ctrl-C stays Ctrl-C."""
-    from pipeline import las_source
-
+    from pipeline.io import las_source
     source = make_las(tmp_path / "in.laz", scattered())
     reader = las_source.LasSource(source)
 

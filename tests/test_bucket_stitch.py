@@ -3,11 +3,11 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+import tiling.store as store_module
 from tiling.bucket import (bucket_by_cell, bucket_by_sub_cell, cell_boxes, cells_within, halo_slices, row_ranges,
                            without_cells)
 from tiling.plan import SUB_CELLS, DensityGrid, crowded_cells, plan_tiles, summed_cells
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
-import tiling.store as store_module
 from tiling.store import Slice, TileStore
 
 RECORD = np.dtype([("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("intensity", "<u2")])

@@ -14,7 +14,7 @@ from tests.conftest import shared_file
 
 
 def cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True, text=True, cwd=cwd,
+    return subprocess.run([sys.executable, "-m", "pipeline.apps.cli", *args], capture_output=True, text=True, cwd=cwd,
                           timeout=600)
 
 

@@ -74,7 +74,7 @@ def test_a_real_cluster_gives_the_local_output(scan, local_output, scheduler, tm
 
 def test_cli_runs_on_the_cluster(scan, local_output, scheduler, tmp_path):
     out = tmp_path / "cli.laz"
-    result = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(scan), "-o", str(out), "--ratio", "0.1",
+    result = subprocess.run([sys.executable, "-m", "pipeline.apps.cli", "run", str(scan), "-o", str(out), "--ratio", "0.1",
                              "--method", "learned", "--tile-size", "8", "--seed", "3", "--scheduler", scheduler],
                             capture_output=True, text=True, cwd=REPO)
     assert result.returncode == 0, result.stderr
@@ -82,7 +82,7 @@ def test_cli_runs_on_the_cluster(scan, local_output, scheduler, tmp_path):
 
 
 def test_an_unreachable_scheduler_is_one_line(scan, tmp_path):
-    result = subprocess.run([sys.executable, "-m", "pipeline.cli", "run", str(scan), "-o", str(tmp_path / "x.laz"),
+    result = subprocess.run([sys.executable, "-m", "pipeline.apps.cli", "run", str(scan), "-o", str(tmp_path / "x.laz"),
                              "--ratio", "0.1", "--scheduler", f"tcp://127.0.0.1:{free_port()}"],
                             capture_output=True, text=True, cwd=REPO)
     assert result.returncode == 2
@@ -95,7 +95,7 @@ def test_tasks_are_submitted_a_bounded_window_ahead_and_come_back_in_order(sched
     task at once (the run's own process grew by about 37 KB a tile), and returns results in item order."""
     import operator
 
-    from pipeline import execute
+    from pipeline.engine import execute
     from pipeline.progress import Progress
 
     monkeypatch.setattr(execute, "IN_FLIGHT_PER_THREAD", 2)
@@ -121,7 +121,7 @@ def test_costly_tasks_go_first_and_every_worker_holds_the_shared_values(schedule
     """Items costlier than the mean are submitted first (a dominant tile must not run alone at a phase's
     end), and the shared values are on every worker before any task starts (a worker busy with a task is
     slow to send them: the other one sat idle); results still come back in item order."""
-    from pipeline import execute
+    from pipeline.engine import execute
     from pipeline.progress import Progress
 
     def shared_value_holders(item: int, shared: str) -> tuple[int, int]:
@@ -153,8 +153,7 @@ def test_costly_tasks_go_first_and_every_worker_holds_the_shared_values(schedule
 
 def test_the_window_grows_when_a_worker_joins_mid_run(scheduler, monkeypatch):
     """An adaptive cluster adds workers while a run goes on: the window is recounted, so they get tasks."""
-    from pipeline import execute
-
+    from pipeline.engine import execute
     monkeypatch.setattr(execute, "RECOUNT_SECONDS", 0.0)
     env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
     with Client(scheduler, timeout="60s") as client:

@@ -6,9 +6,9 @@ import torch
 from scipy.spatial import cKDTree
 
 from model import Tile, get_simplifier
-from model.detail import WEIGHTS, descriptors, load_detail_weights
-from model.detail_net import TRAINED, export_weights, load_detail_net
-from model.learned import WEIGHTS as PAPER_WEIGHTS
+from model.detail import descriptors, load_detail_weights
+from model.learning import DETAIL_WEIGHTS, PAPER_WEIGHTS
+from model.learning.detail_net import TRAINED, export_weights, load_detail_net
 
 
 def edge_pole_plane(seed: int = 0) -> tuple[Tile, np.ndarray, np.ndarray]:
@@ -109,7 +109,7 @@ def test_the_shipped_numpy_weights_are_the_trained_network_and_predict_as_it_doe
     """The default runs on detail.npz without torch: it must hold detail.pt's weights, and its float32 numpy
     forward pass must agree with the torch network's (to float32 round-off: 1e-4 relative)."""
     export_weights(load_detail_net(), tmp_path / "again.npz")
-    shipped, again = np.load(WEIGHTS), np.load(tmp_path / "again.npz")
+    shipped, again = np.load(DETAIL_WEIGHTS), np.load(tmp_path / "again.npz")
     assert sorted(shipped.files) == sorted(again.files)
     for name in shipped.files:
         np.testing.assert_array_equal(shipped[name], again[name], err_msg=name)
@@ -137,7 +137,7 @@ def test_training_on_generated_meshes_writes_weights_that_predict(tmp_path):
     import trimesh
     from click.testing import CliRunner
 
-    from pipeline.cli import cli
+    from pipeline.apps.cli import cli
 
     shapes = {"ball": trimesh.creation.icosphere(3), "box": trimesh.creation.box((1, 2, 3)),
               "can": trimesh.creation.cylinder(0.5, 2, sections=48)}

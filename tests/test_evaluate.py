@@ -12,9 +12,9 @@ import zarr
 from click.testing import CliRunner
 
 import pipeline
-from pipeline.cli import cli
-from pipeline.comparison import RunOptions, compare
-from pipeline.scoring import METRIC_COLUMNS
+from pipeline.apps.cli import cli
+from pipeline.apps.comparison import RunOptions, compare
+from pipeline.apps.scoring import METRIC_COLUMNS
 from pipeline.simulate import write_street_scan
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"

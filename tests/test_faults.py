@@ -32,7 +32,7 @@ def clean_output(scan: Path, tmp_path_factory: pytest.TempPathFactory) -> np.nda
 
 
 def command(scan: Path, out: Path) -> list[str]:
-    return [sys.executable, "-m", "pipeline.cli", "run", str(scan), "-o", str(out), *SETTINGS, "--config",
+    return [sys.executable, "-m", "pipeline.apps.cli", "run", str(scan), "-o", str(out), *SETTINGS, "--config",
             str(ON_A_CLUSTER)]
 
 

@@ -86,4 +86,4 @@ def test_real_waveform_files_keep_every_field(tmp_path, name):
     assert np.isin(rows(result.points.array), rows(source.points.array)).all()
     assert sorted((v.user_id, v.record_id) for v in result.header.vlrs if v.user_id != "laszip encoded") == \
         sorted([(v.user_id, v.record_id) for v in source.header.vlrs if v.user_id != "laszip encoded"]
-               + [("lidar-simplify", 1)])  # every input VLR, plus the run record (pipeline.provenance)
+               + [("lidar-simplify", 1)])  # every input VLR, plus the run record (pipeline.io.provenance)

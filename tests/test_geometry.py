@@ -3,18 +3,8 @@ import numpy as np
 import pytest
 
 from model import geometry
-from model.geometry import (
-    bandwidth,
-    curvature,
-    knn,
-    local_eigenvalues,
-    local_features,
-    local_frames,
-    morton_order,
-    mean_curvature,
-    point_features,
-    roughness,
-)
+from model.geometry import (bandwidth, curvature, knn, local_eigenvalues, local_features, local_frames, mean_curvature,
+                            morton_order, point_features, roughness)
 
 
 def plane(n: int = 3_000, noise: float = 0.0, seed: int = 0) -> np.ndarray:
@@ -139,9 +129,19 @@ def test_mean_curvature_smooths():
     around = kappa[nbrs.indices]
     assert (kbar >= around.min(axis=1) - 1e-6).all() and (kbar <= around.max(axis=1) + 1e-6).all()
     assert np.abs(kbar - kappa).mean() > 0.01  # it does average, not just copy kappa
-    rough = roughness(kappa, kbar)
-    assert (rough >= 0).all()
-    np.testing.assert_allclose(rough, np.abs(kappa - kbar))
+
+
+def test_roughness_is_where_curvature_departs_from_its_neighbourhood():
+    """A point on a cube's edge is more curved than the mean of its neighbours (half of them on the flat
+    faces): rough. A point in a face's middle, among flat neighbours, is not. A constant field has none."""
+    xyz = cube(per_face=2_000)
+    features = point_features(xyz)
+    to_edge = np.sort(1 - np.abs(xyz), axis=1)[:, 1]  # distance to the nearest edge (0 on an edge)
+    on_edge, in_middle = to_edge < 0.02, to_edge > 0.5
+    assert np.median(features.roughness[on_edge]) > 20 * max(np.median(features.roughness[in_middle]), 1e-9)
+    assert np.median(features.roughness[on_edge]) > 0.3 * np.median(features.kappa[on_edge])
+    constant = np.full(100, 0.05)
+    np.testing.assert_array_equal(roughness(constant, constant), 0.0)
 
 
 def test_sphere_is_smooth():

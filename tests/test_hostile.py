@@ -173,9 +173,9 @@ def test_point_data_offset_inside_the_vlrs_is_refused(tmp_path, scan, command):
 
 @pytest.mark.parametrize("command", ["run", "info"])
 def test_billions_of_evlrs_are_refused_at_once(tmp_path, command):
-    from tests.test_bad_input import make_las, scattered
-
     import pyproj
+
+    from tests.test_bad_input import make_las, scattered
 
     source = make_las(tmp_path / "evlr.las", scattered(), crs=pyproj.CRS.from_epsg(32617))
     patched_bytes(source, 235, source.stat().st_size, 8)  # first EVLR at the file's end ...

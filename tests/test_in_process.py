@@ -11,11 +11,11 @@ import laspy
 import numpy as np
 import pytest
 
+from pipeline.engine.execute import map_tasks
+from pipeline.engine.threads import in_process, runs_in_process
 from pipeline.errors import PipelineError
-from pipeline.execute import map_tasks
-from pipeline.las_source import LasSource
+from pipeline.io.las_source import LasSource
 from pipeline.progress import Progress
-from pipeline.threads import in_process, runs_in_process
 from tiling.store import ChunkCache
 
 OFF = Progress("off")

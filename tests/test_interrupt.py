@@ -44,7 +44,7 @@ def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, stop, code,
     out = tmp_path / "out.laz"
     here = 1_000_000 if where == "in process" else 0  # the 300k patch on this process's threads, or on a cluster
     (tmp_path / "place.toml").write_text(f"[run]\nin_process_points = {here}\n")
-    command = [sys.executable, "-m", "pipeline.cli", "run", str(patch), "-r", "0.1", "-o", str(out), "--tile-size", "2",
+    command = [sys.executable, "-m", "pipeline.apps.cli", "run", str(patch), "-r", "0.1", "-o", str(out), "--tile-size", "2",
                "-w", "2", "--config", str(tmp_path / "place.toml"), "-q"]
     run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                            preexec_fn=interruptible)

@@ -9,7 +9,8 @@ from scipy.spatial import cKDTree
 
 import pipeline
 from model import Tile, get_simplifier
-from model.learned import WEIGHTS, load_model
+from model.learned import load_model
+from model.learning import PAPER_WEIGHTS
 from tests.conftest import shared_file
 
 
@@ -27,8 +28,8 @@ def street_tile(n: int = 6_000, seed: int = 1) -> Tile:
 
 
 def test_weights_ship_with_their_record():
-    assert WEIGHTS.is_file() and WEIGHTS.stat().st_size < 1_000_000
-    record = torch.load(WEIGHTS, map_location="cpu", weights_only=False)["record"]
+    assert PAPER_WEIGHTS.is_file() and PAPER_WEIGHTS.stat().st_size < 1_000_000
+    record = torch.load(PAPER_WEIGHTS, map_location="cpu", weights_only=False)["record"]
     assert len(record["train"]) == 64 and len(record["test"]) == 16
     assert not set(record["train"]) & set(record["test"])
     assert record["history"][-1]["loss"] < record["history"][0]["loss"]

@@ -8,9 +8,9 @@ import pytest
 from click.testing import CliRunner
 
 import pipeline
-from pipeline.classes import classification
-from pipeline.cli import cli
-from tiling.budgets import target_count
+from model.rules import kept_count
+from pipeline.apps.cli import cli
+from pipeline.engine.classes import classification
 
 WIRE, BUILDING, ROAD = 14, 6, 11
 
@@ -27,7 +27,7 @@ def test_levels_are_nested_exact_and_the_finest_is_the_plain_run(tmp_path, stree
     paths = [tmp_path / f"out.r{r}.laz" for r in ("0.2", "0.1", "0.05")]
     assert [p for p, _ in report.levels] == paths and not (tmp_path / "out.laz").exists()
     kept = [laspy.read(p).points.array for p in paths]
-    assert [len(k) for k in kept] == [target_count(r, 60_000) for r in (0.2, 0.1, 0.05)]
+    assert [len(k) for k in kept] == [kept_count(r, 60_000) for r in (0.2, 0.1, 0.05)]
     sets = [record_set(k) for k in kept]
     assert sets[1] <= sets[0] and sets[2] <= sets[1]
     plain = pipeline.run(street_scan, tmp_path / "plain.laz", ratio=0.2, **settings)
@@ -56,7 +56,7 @@ def test_keep_class_keeps_every_point_of_those_classes_with_every_attribute(tmp_
     kept = laspy.read(tmp_path / "out.laz").points.array
     assert record_set(source[protected]) <= record_set(kept)
     thinned = len(kept) - int(protected.sum())
-    assert thinned == target_count(0.1, int((~protected).sum()))
+    assert thinned == kept_count(0.1, int((~protected).sum()))
     assert report.kept_whole == int(protected.sum()) and report.output_points == len(kept)
     assert len(record_set(kept)) == len(kept)  # no point twice, seams included
 
@@ -72,7 +72,7 @@ def test_thin_class_thins_only_those_classes_and_levels_keep_them_all(tmp_path, 
         group = zarr.open_group(str(tmp_path / f"out.r{ratio}.zarr"), mode="r")
         codes = np.asarray(group["classification"][:])
         assert (codes != ROAD).sum() == (~road).sum()
-        assert (codes == ROAD).sum() == target_count(float(ratio), int(road.sum()))
+        assert (codes == ROAD).sum() == kept_count(float(ratio), int(road.sum()))
 
 
 def test_the_cli_says_both_numbers_and_names_a_missing_class(tmp_path, street_scan):
@@ -81,7 +81,7 @@ def test_the_cli_says_both_numbers_and_names_a_missing_class(tmp_path, street_sc
     assert result.exit_code == 0, result.output
     wire = int((classification(laspy.read(street_scan).points.array) == WIRE).sum())
     assert f"classes 14, 9 kept whole: {wire:,} points kept whole; the other {60_000 - wire:,} thinned to " \
-           f"{target_count(0.1, 60_000 - wire):,}" in result.stdout
+           f"{kept_count(0.1, 60_000 - wire):,}" in result.stdout
     assert "note: class 9 has no points in the scan" in result.stderr
 
 

@@ -1,5 +1,5 @@
 """The local cluster's workers: settings that cost CPU for what a run never uses are off."""
-from pipeline.dask_cluster import local_cluster
+from pipeline.engine.dask_cluster import local_cluster
 
 
 def periodic_callbacks(dask_worker) -> list[str]:

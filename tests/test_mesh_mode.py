@@ -10,10 +10,10 @@ import trimesh
 from click.testing import CliRunner
 
 from model.meshes import load_mesh
-from model.selection import kept_count
-from pipeline.cli import cli as pipeline_cli
+from model.rules import kept_count
+from pipeline.apps.cli import cli as pipeline_cli
+from pipeline.apps.mesh_mode import _open3d, read_mesh
 from pipeline.errors import PipelineError
-from pipeline.mesh_mode import _open3d, read_mesh
 from tests.test_cli import assert_one_line_error, cli
 
 

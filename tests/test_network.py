@@ -6,9 +6,10 @@ import pytest
 import torch
 import trimesh
 
-from model.losses import adaptive_chamfer, curvature_error, curvature_weights, mean_curvature
-from model.network import LearnedSimplifier, Projector, Refiner, knn_graph, latent_fps, mean_operator, normalise
-from model.training import TrainSettings, training_step
+from model.learning.losses import adaptive_chamfer, curvature_error, curvature_weights, mean_curvature
+from model.learning.network import (LearnedSimplifier, Projector, Refiner, knn_graph, latent_fps, mean_operator,
+                                    normalise)
+from model.learning.training import TrainSettings, training_step
 
 
 @pytest.fixture
@@ -149,7 +150,7 @@ def test_folding_batchnorm_keeps_the_projector_outputs(cloud):
 
 
 def test_blockwise_inference_matches_forward(cloud, monkeypatch):
-    import model.network as network
+    import model.learning.network as network
 
     xyz, neighbours = cloud
     projector = Projector()

@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from tiling.budgets import grouped_budgets, target_count, tile_budgets
+from model.rules import kept_count
+from tiling.budgets import grouped_budgets, tile_budgets
 from tiling.plan import SUB_CELLS, DensityGrid, crowded_cells, plan_tiles
 
 
@@ -84,7 +85,7 @@ def test_a_split_cells_tiles_share_the_budget_the_whole_cell_would_get():
     grouped = grouped_budgets(counts, 0.1, groups, floors, weights)
     whole = tile_budgets(np.array([500, 8_000, 10, 700]), 0.1, np.array([50, 120, 5, 60]),
                          np.array([600.0, 8_800, 10, 700]))
-    assert grouped.sum() == target_count(0.1, int(counts.sum()))
+    assert grouped.sum() == kept_count(0.1, int(counts.sum()))
     assert grouped[[0, 4, 5]].tolist() == whole[[0, 2, 3]].tolist() and grouped[1:4].sum() == whole[1]
     assert np.abs(grouped[1:4] - whole[1] * weights[1:4] / weights[1:4].sum()).max() < 1  # by weight, not floor
     alone = np.arange(len(counts))
@@ -102,7 +103,7 @@ def test_all_identical_points_make_one_tile():
 def test_budgets_sum_to_rounded_target(ratio):
     counts = np.random.default_rng(1).integers(0, 5_000, size=97)
     budgets = tile_budgets(counts, ratio)
-    assert budgets.sum() == target_count(ratio, int(counts.sum()))
+    assert budgets.sum() == kept_count(ratio, int(counts.sum()))
     assert (budgets <= counts).all() and (budgets >= 0).all()
     assert (np.abs(budgets - ratio * counts) < 1 + 1e-9).all()
 
@@ -115,7 +116,7 @@ def test_floors_keep_sparse_tiles_and_the_exact_total(ratio):
     counts = np.concatenate([rng.integers(1, 6, size=40), rng.integers(5_000, 50_000, size=20)])
     floors = np.minimum(counts, rng.integers(1, 30, size=len(counts)))
     budgets = tile_budgets(counts, ratio, floors)
-    target = target_count(ratio, int(counts.sum()))
+    target = kept_count(ratio, int(counts.sum()))
     assert budgets.sum() == target and (budgets <= counts).all() and (budgets >= 0).all()
     if floors.sum() <= target:
         assert (budgets >= floors).all()
@@ -133,9 +134,9 @@ def test_floors_are_occupied_cells():
 
 
 def test_target_rounds_half_up():
-    assert target_count(0.5, 3) == 2
-    assert target_count(0.1, 15) == 2
-    assert target_count(1.0, 7) == 7
+    assert kept_count(0.5, 3) == 2
+    assert kept_count(0.1, 15) == 2
+    assert kept_count(1.0, 7) == 7
 
 
 def test_coverage_weights_give_equal_areas_equal_shares_whatever_their_density():

@@ -2,12 +2,12 @@
 run, eval, compare and batch; nothing with --quiet; bars only at a terminal."""
 from __future__ import annotations
 
+import io
 import json
 import os
-import io
 import subprocess
-import time
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -18,7 +18,7 @@ from pipeline.progress import Progress
 def pipeline_cli(*args: str, interval: str = "0") -> subprocess.CompletedProcess:
     """The CLI in a child process, stderr a pipe (not a terminal), progress every `interval` seconds."""
     env = {**os.environ, "PIPELINE_PROGRESS_SECONDS": interval}
-    return subprocess.run([sys.executable, "-m", "pipeline.cli", *args], capture_output=True, text=True, env=env,
+    return subprocess.run([sys.executable, "-m", "pipeline.apps.cli", *args], capture_output=True, text=True, env=env,
                           timeout=600)
 
 

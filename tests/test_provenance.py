@@ -10,7 +10,7 @@ import laspy
 import zarr
 
 import pipeline
-from pipeline.provenance import PROVENANCE_USER_ID, read_provenance
+from pipeline.io.provenance import PROVENANCE_USER_ID, read_provenance
 from tests.test_units import write_patch
 
 

@@ -8,7 +8,7 @@ import trimesh
 from model.baselines import uniform_vertices
 from model.meshes import mesh_graph
 from model.qem import qem_vertices
-from model.selection import kept_count
+from model.rules import kept_count
 
 
 @pytest.mark.parametrize("ratio", [0.5, 0.2, 0.1, 0.05, 0.01])

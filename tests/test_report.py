@@ -13,12 +13,12 @@ import pytest
 from click.testing import CliRunner
 
 import pipeline
-from pipeline.cli import cli
-from pipeline.comparison import RunOptions, compare
-from pipeline.density_map import cell_counts, density_grid, density_map
-from pipeline.report import write_report
-from pipeline.report_region import parse_region
-from pipeline.view3d import CLASSES
+from pipeline.apps.cli import cli
+from pipeline.apps.comparison import RunOptions, compare
+from pipeline.apps.report import write_report
+from pipeline.apps.visual.density_map import cell_counts, density_grid, density_map
+from pipeline.apps.visual.report_region import parse_region
+from pipeline.apps.visual.view3d import CLASSES
 
 RATIO = 0.1
 BLANK_STD = 20.0  # grey levels: a blank area is 0, plotly's "WebGL is not supported" text 9-15, the clouds 29-52

@@ -224,7 +224,7 @@ def test_a_cell_over_the_tile_limit_is_split_into_tiles_under_it(tmp_path, metho
     splits that cell on its sub-cells, so no task holds more than the limit; the output is exact, the
     points a class rule keeps whole are all kept, and any worker count gives the same file."""
     from pipeline.config import RunConfig
-    from pipeline.runner import run_scan
+    from pipeline.engine.runner import run_scan
 
     scan = station_scan(tmp_path / "station.las", 3.5, 0.3)  # in one 1 m cell
     outputs, notes = [], []
@@ -248,7 +248,7 @@ def test_a_sub_cell_over_the_tile_limit_is_named_with_the_tile_size_that_splits_
     """A crowded cell is split down to sub-cells (tile size / 512) and no further: 4,000 points within
     one sub-cell stay one tile over the limit, and the run says so, and which tile size would split it."""
     from pipeline.config import RunConfig
-    from pipeline.runner import run_scan
+    from pipeline.engine.runner import run_scan
 
     notes: list[str] = []
     report = run_scan([station_scan(tmp_path / "station.las", 3.506, 0.003)], tmp_path / "out.las",  # 1 sub-cell

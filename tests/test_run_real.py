@@ -1,7 +1,6 @@
 """End to end on real scans from ../shared/data: counts, multi-file input, attributes, VLRs, formats."""
 from __future__ import annotations
 
-
 import laspy
 import numpy as np
 import pytest
@@ -90,7 +89,7 @@ def test_las_laz_zarr_round_trips_agree(tmp_path):
 def test_pieces_anywhere_in_a_laz_file_are_its_points(name):
     # COPC's chunks each hold their own point count; lazrs's seek assumed equal chunks and returned
     # other points (or failed) past the first chunk: pieces are read through the chunk table instead
-    from pipeline.las_source import LasSource
+    from pipeline.io.las_source import LasSource
 
     path = shared_file(name)
     whole = laspy.read(path).points.array

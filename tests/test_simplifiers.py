@@ -1,9 +1,10 @@
-"""The simplifier interface: exact budgets of core points, priority order, determinism by seed."""
+"""What the classic simplifiers promise beyond the contract every method meets (tests/test_conformance.py):
+nested prefixes for fps and random, a seed that changes the picks, fps spreading better than random, and
+voxel's one point per voxel."""
 import numpy as np
 import pytest
 
 from model import Tile, get_simplifier
-from model.registry import CORE_ONLY
 
 CLASSIC = ("fps", "voxel", "random", "stratified")  # keep source positions; the learned method has its own tests
 
@@ -17,22 +18,9 @@ def make_tile(n: int = 20_000, seed: int = 5) -> Tile:
 
 
 @pytest.mark.parametrize("method", CLASSIC)
-def test_exact_budget_of_unique_core_points(method):
-    tile = make_tile()
-    for budget in (1, 37, 2_000, tile.core_count):
-        selection = get_simplifier(method)(tile, budget)
-        assert len(selection.indices) == budget
-        assert len(np.unique(selection.indices)) == budget
-        assert tile.core[selection.indices].all()
-        np.testing.assert_array_equal(selection.xyz, tile.xyz[selection.indices])
-
-
-@pytest.mark.parametrize("method", CLASSIC)
-def test_deterministic_for_a_seed(method):
+def test_another_seed_gives_other_picks(method):
     tile = make_tile()
     first = get_simplifier(method)(tile, 1_500)
-    again = get_simplifier(method)(tile, 1_500)
-    np.testing.assert_array_equal(first.indices, again.indices)
     other = get_simplifier(method)(Tile(tile.xyz, tile.core, tile.centre, seed=12), 1_500)
     assert not np.array_equal(first.indices, other.indices)
 
@@ -61,10 +49,10 @@ def test_fps_spreads_points_better_than_random():
 def test_voxel_keeps_one_point_per_voxel_nearest_its_centre():
     tile = make_tile()
     selection = get_simplifier("voxel")(tile, 800)
-    from model.baselines import _cell_for_budget
+    from model.baselines import VOXEL_COUNT_SLACK, _cell_for_budget
 
     points = tile.xyz[tile.core] + tile.centre
-    cell = _cell_for_budget(points, 800)
+    cell = _cell_for_budget(points, 800, VOXEL_COUNT_SLACK)
     kept = selection.xyz + tile.centre
     kept_voxels = np.floor(kept / cell)
     assert len(np.unique(kept_voxels, axis=0)) == 800
@@ -81,35 +69,3 @@ def test_voxel_tops_up_when_points_are_duplicates():
     tile = Tile(xyz, np.ones(len(xyz), bool), np.zeros(3), seed=1)
     selection = get_simplifier("voxel")(tile, 120)
     assert len(np.unique(selection.indices)) == 120
-
-
-@pytest.mark.parametrize("method", CLASSIC + ("tcp", "stratified-detail", "learned", "paper", "paper-refined"))
-@pytest.mark.parametrize("n", [1, 2, 3, 7, 9])
-def test_tiny_tiles(method, n):
-    xyz = np.random.default_rng(n).uniform(size=(n, 3))
-    tile = Tile(xyz, np.ones(n, bool), np.zeros(3), seed=2)
-    assert len(get_simplifier(method)(tile, n).indices) == n
-    assert len(get_simplifier(method)(tile, 1).indices) == 1
-
-
-@pytest.mark.parametrize("method", CLASSIC)
-def test_exact_duplicates_are_each_kept_once(method):
-    """Every point twice, or one point repeated: the budget is met by distinct source points, all core."""
-    base = make_tile(2_000)
-    doubled = Tile(np.concatenate([base.xyz, base.xyz]), np.concatenate([base.core, base.core]), base.centre, 3)
-    same = Tile(np.zeros((500, 3)), np.ones(500, dtype=bool), base.centre, 3)
-    for tile in (doubled, same):
-        for budget in (tile.core_count // 10, tile.core_count * 3 // 4, tile.core_count):
-            indices = get_simplifier(method)(tile, budget).indices
-            assert len(np.unique(indices)) == budget and tile.core[indices].all()
-
-
-@pytest.mark.parametrize("method", CORE_ONLY)
-def test_core_only_methods_pick_the_same_points_without_the_halo(method):
-    """A run loads only the core of a CORE_ONLY method's tiles: the picks must be those made with the halo."""
-    tile = make_tile()
-    core = np.flatnonzero(tile.core)
-    alone = Tile(tile.xyz[core], np.ones(len(core), dtype=bool), tile.centre, tile.seed)
-    np.testing.assert_array_equal(core[get_simplifier(method)(alone, 1_500).indices],
-                                  get_simplifier(method)(tile, 1_500).indices)
-

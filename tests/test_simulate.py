@@ -4,8 +4,7 @@ import laspy
 import numpy as np
 import pytest
 
-from pipeline import simulate
-from pipeline.simulate import ORIGIN, write_street_scan
+from pipeline.simulate import ORIGIN, write_street_scan, writing
 
 
 @pytest.fixture(scope="module")
@@ -168,7 +167,7 @@ def test_no_temp_file_left_and_no_partial_file_on_error(tmp_path, monkeypatch):
     def boom(*args, **kwargs):
         raise RuntimeError("disk full")
 
-    monkeypatch.setattr(simulate, "_record", boom)
+    monkeypatch.setattr(writing, "point_record", boom)
     with pytest.raises(RuntimeError):
         write_street_scan(tmp_path / "bad.laz", n_points=20_000, seed=0)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["ok.laz"]

@@ -1,4 +1,4 @@
-"""The bound on stopping (pipeline.stop_guard): an armed guard ends a stuck process with its one line and
+"""The bound on stopping (pipeline.engine.stop_guard): an armed guard ends a stuck process with its one line and
 exit code; a cancelled one never fires. Run in fresh processes, since the guard ends its process."""
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ HANG_GUARD_S = 60  # a bound on the child, not a speed threshold
 
 STUCK = """
 import threading, time
-from pipeline.stop_guard import StopGuard
+from pipeline.engine.stop_guard import StopGuard
 guard = StopGuard(grace_s=0.2)
 guard.arm("pipeline: interrupted; finished work kept in /w: re-run the same command to resume", 130)
 {then}

@@ -12,8 +12,8 @@ from click.testing import CliRunner
 from scipy.spatial import cKDTree
 
 import pipeline
-from pipeline.cli import cli
-from pipeline.crs import length_unit
+from pipeline.apps.cli import cli
+from pipeline.io.crs import length_unit
 
 STEP = 0.001 * np.sqrt(2)  # grid step in metres: no grid point falls exactly on a cell border in metres or feet
 

@@ -13,7 +13,7 @@ import xarray as xr
 import zarr
 
 import pipeline
-import pipeline.zarr_output
+import pipeline.io.zarr_output
 from tests.conftest import shared_file
 
 SMALL_CHUNK = 1_000  # a zarr chunk far smaller than the output, so the streaming writer flushes many times
@@ -39,7 +39,7 @@ def street_outputs(street_scan: Path, tmp_path_factory: pytest.TempPathFactory) 
     folder = tmp_path_factory.mktemp("zarr_output")
     store, las = folder / "street.zarr", folder / "street.las"
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(pipeline.zarr_output, "ZARR_CHUNK", SMALL_CHUNK)
+        patch.setattr(pipeline.io.zarr_output, "ZARR_CHUNK", SMALL_CHUNK)
         pipeline.run(street_scan, store, **SETTINGS)
     pipeline.run(street_scan, las, **SETTINGS)
     return store, las

@@ -3,15 +3,12 @@ from __future__ import annotations
 
 import numpy as np
 
-
-def target_count(ratio: float, total: int) -> int:
-    """round(ratio * N) with halves rounded up (not Python's banker's rounding)."""
-    return min(total, int(np.floor(ratio * total + 0.5)))
+from model.rules import kept_count
 
 
 def tile_budgets(counts: np.ndarray, ratio: float, floors: np.ndarray | None = None,
                  weights: np.ndarray | None = None) -> np.ndarray:
-    """Integer budgets <= counts summing to target_count(ratio, counts.sum()): proportional to `weights`
+    """Integer budgets <= counts summing to kept_count(ratio, counts.sum()): proportional to `weights`
     (the counts by default; coverage_weights for methods that space points evenly), never above a
     tile's count and never below its floor (the runner's: one point per non-empty tile, or what a
     method's cover radius needs, so a sparse tile keeps its area).
@@ -19,7 +16,7 @@ def tile_budgets(counts: np.ndarray, ratio: float, floors: np.ndarray | None = N
     Quotas are min(count, max(floor, c * weight)) with c chosen so they sum to the target (floors scaled
     down if they alone exceed it); integers by the largest-remainder method, ties to the lower tile id.
     """
-    return shared_budgets(counts, target_count(ratio, int(np.sum(counts))), floors, weights)
+    return shared_budgets(counts, kept_count(ratio, int(np.sum(counts))), floors, weights)
 
 
 def grouped_budgets(counts: np.ndarray, ratio: float, groups: np.ndarray, floors: np.ndarray | None = None,

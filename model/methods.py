@@ -1,0 +1,178 @@
+"""Simplifiers as values: each a frozen dataclass holding its parameters (picklable, hashable, compared by
+value), called as `method(tile, budget) -> Selection`, and saying what a run must know of it: whether it
+reads a tile's halo, spaces points evenly, or fills by a loss the run surveys first.
+
+A parameter is a dataclass field with its default; model.registry names the methods. A run's work folder
+and an output's provenance read the fields, so a parameter added here needs no other change.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from model.baselines import VOXEL_COUNT_SLACK, fps_simplify, random_simplify, tcp_simplify, voxel_simplify
+from model.detail import predicted_fill_loss
+from model.learning import DETAIL_WEIGHTS, PAPER_WEIGHTS
+from model.selection import FillLoss, Selection, Tile
+from model.stratified import COVER_SPACINGS, measured_loss, no_loss, stratified_selection
+
+
+@dataclass(frozen=True)
+class Method:
+    """A simplifier with its parameters. Class flags tell the run how to feed it."""
+
+    reads_halo: ClassVar[bool] = True        # False: picks from the core alone, so a run loads no halo for it
+    spaces_evenly: ClassVar[bool] = False    # True: tile budgets follow covered volume, not point counts
+
+    def __call__(self, tile: Tile, budget: int) -> Selection:
+        """`budget` core points of `tile` (fewer only if it has fewer), most important first."""
+        raise NotImplementedError
+
+    def on_mesh(self, tile: Tile, budget: int, faces: np.ndarray) -> Selection:
+        """The same for a mesh's vertices as one tile; (f, 3) `faces` for a method that can use them."""
+        return self(tile, budget)
+
+    def parameters(self) -> dict[str, Any]:
+        """Every parameter and its value, JSON-able (paths as strings)."""
+        return {f.name: str(v) if isinstance(v := getattr(self, f.name), Path) else v for f in fields(self)}
+
+    def trained_weights(self) -> Path | None:
+        """The file of trained weights the method runs on (an output's provenance records its digest)."""
+        return None
+
+    def keeps_positions(self) -> bool:
+        """Whether the selection's xyz are the picked points' own (False: the method moves them)."""
+        return True
+
+
+@dataclass(frozen=True)
+class Fps(Method):
+    """3-D farthest point sampling over a tile's core (model.baselines.fps_simplify)."""
+
+    reads_halo: ClassVar[bool] = False
+    spaces_evenly: ClassVar[bool] = True
+
+    def __call__(self, tile: Tile, budget: int) -> Selection:
+        return fps_simplify(tile, budget)
+
+
+@dataclass(frozen=True)
+class Voxel(Method):
+    """The real point nearest each voxel centre, the cell searched so the voxels number at most `slack`
+    over the budget (the extra ones trimmed in random order)."""
+
+    slack: float = VOXEL_COUNT_SLACK
+    reads_halo: ClassVar[bool] = False
+    spaces_evenly: ClassVar[bool] = True
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.slack <= 1:
+            raise ValueError(f"parameter 'slack' must be a share in [0, 1], got {self.slack!r}")
+
+    def __call__(self, tile: Tile, budget: int) -> Selection:
+        return voxel_simplify(tile, budget, self.slack)
+
+
+@dataclass(frozen=True)
+class Random(Method):
+    """A seeded uniform sample of the core."""
+
+    reads_halo: ClassVar[bool] = False
+
+    def __call__(self, tile: Tile, budget: int) -> Selection:
+        return random_simplify(tile, budget)
+
+
+@dataclass(frozen=True)
+class TopCurvature(Method):
+    """The paper's TCP baseline: the points of highest curvature."""
+
+    def __call__(self, tile: Tile, budget: int) -> Selection:
+        return tcp_simplify(tile, budget)
+
+
+@dataclass(frozen=True)
+class Fill(Method):
+    """The stratified fill and hole cover (model.stratified), each point weighted by its fill loss; a run
+    surveys every tile's loss first, so weights and the hole radius are set for the whole scan. A hole
+    is a point farther than `cover_spacings` typical output spacings from every pick."""
+
+    cover_spacings: float = COVER_SPACINGS
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.cover_spacings) and self.cover_spacings > 0):
+            raise ValueError(f"parameter 'cover_spacings' must be a positive number, got {self.cover_spacings!r}")
+
+    def fill_loss(self, tile: Tile, budget: int) -> FillLoss:
+        """Each point's fill loss (none here: every point weighs the same)."""
+        return no_loss(tile, budget)
+
+    def __call__(self, tile: Tile, budget: int) -> Selection:
+        return stratified_selection(tile, budget, self.fill_loss, self.cover_spacings)
+
+
+@dataclass(frozen=True)
+class MeasuredDetail(Fill):
+    """The fill weighted by the curvature loss measured on the tile (no network)."""
+
+    def fill_loss(self, tile: Tile, budget: int) -> FillLoss:
+        return measured_loss(tile, budget)
+
+
+@dataclass(frozen=True)
+class Learned(Fill):
+    """The default: the fill weighted by the curvature loss the TOSCA-trained predictor expects at each
+    point (model/detail.py, run in numpy from `weights`: no torch in its workers)."""
+
+    weights: Path = DETAIL_WEIGHTS
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        weights_exist(self.weights)
+
+    def fill_loss(self, tile: Tile, budget: int) -> FillLoss:
+        return predicted_fill_loss(tile, budget, Path(self.weights))
+
+    def trained_weights(self) -> Path | None:
+        return Path(self.weights)
+
+
+@dataclass(frozen=True)
+class Paper(Method):
+    """The paper's network from `weights`: latent-FPS picks at their measured positions, or with
+    `refine` moved by its attention refinement (CD 1.5-3.2x higher for the same CE on the TOSCA test
+    split; see the model card). On a mesh its GNN aggregates over the mesh adjacency, as the paper does."""
+
+    weights: Path = PAPER_WEIGHTS
+    refine: bool = False
+
+    def __post_init__(self) -> None:
+        weights_exist(self.weights)
+
+    def __call__(self, tile: Tile, budget: int) -> Selection:
+        from model.learned import learned_simplify
+
+        return learned_simplify(tile, budget, Path(self.weights), refine=self.refine)
+
+    def on_mesh(self, tile: Tile, budget: int, faces: np.ndarray) -> Selection:
+        from model.learned import learned_simplify
+        from model.learning.network import GRAPH_NEIGHBOURS
+        from model.meshes import mesh_graph
+
+        graph = mesh_graph(tile.xyz, faces, GRAPH_NEIGHBOURS)
+        return learned_simplify(tile, budget, Path(self.weights), graph=graph, refine=self.refine)
+
+    def trained_weights(self) -> Path | None:
+        return Path(self.weights)
+
+    def keeps_positions(self) -> bool:
+        return not self.refine
+
+
+def weights_exist(path: Path) -> None:
+    """A method's `weights` must name a file (checked when the method is made, not in its first tile)."""
+    if not Path(path).is_file():
+        raise ValueError(f"parameter 'weights': no such file {str(path)!r}")

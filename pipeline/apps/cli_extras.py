@@ -1,0 +1,85 @@
+"""The commands beside the main job: `pipeline demo` (simulate a street scan and simplify it) and the two
+training commands (`train`: the paper's network; `train-detail`: the default method's predictor)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from pipeline.config import build_config
+from pipeline.errors import PipelineError
+from pipeline.progress import Progress
+
+
+@click.command("demo")
+@click.option("--out-dir", type=click.Path(path_type=Path), default=Path("demo"), show_default=True,
+              help="Folder for the demo scan and its simplification.")
+@click.option("--points", type=int, default=1_500_000, show_default=True, help="Size of the simulated scan.")
+@click.option("--ratio", type=float, default=0.1, show_default=True, help="Fraction of points to keep.")
+@click.option("--workers", "-w", type=int, default=None, help="Dask worker processes. [default: 2]")
+def demo_command(out_dir: Path, points: int, ratio: float, workers: int | None) -> None:
+    """Simulate a mobile-LiDAR street scan and simplify it: the built-in end-to-end example."""
+    from pipeline.engine.runner import run_scan
+    from pipeline.simulate import write_street_scan
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    scan = out_dir / "demo_street.laz"
+    if not scan.exists():
+        click.echo(f"simulating {points:,} points of street scan -> {scan}")
+        write_street_scan(scan, n_points=points, seed=0)
+    settings = build_config("toronto3d", ratio=ratio, workers=workers)
+    report = run_scan([scan], out_dir / "demo_street.simplified.laz", settings, overwrite=True,
+                      progress=Progress.for_terminal())
+    click.echo(f"{report.output}: {report.output_points:,} of {report.input_points:,} points "
+               f"({report.tiles} tiles, {report.seconds:.1f} s)")
+
+
+@click.command("train")
+@click.option("--data", type=click.Path(path_type=Path, file_okay=False), required=True,
+              help="Folder of TOSCA-style meshes (.off, .off.gz, .obj, .ply); split 80/20 by pose within class.")
+@click.option("--out", type=click.Path(path_type=Path), default=Path("model/learning/weights/tosca.pt"),
+              show_default=True, help="Where to save the weights, with the split and the losses.")
+@click.option("--epochs", type=int, default=150, show_default=True, help="Passes over the training meshes.")
+@click.option("--points", type=int, default=2048, show_default=True, help="Vertices drawn per mesh per step.")
+@click.option("--curvature-weight", type=float, default=0.1, show_default=True, help="lambda of the CE term.")
+@click.option("--seed", type=int, default=0, show_default=True)
+@click.option("--threads", type=int, default=1, show_default=True, help="torch threads.")
+def train_command(data: Path, out: Path, epochs: int, points: int, curvature_weight: float, seed: int,
+                  threads: int) -> None:
+    """Train the paper's network (`--method paper`) on meshes; CPU, about 20 s an epoch at defaults."""
+    import torch
+
+    from model.learning.training import TrainSettings, train
+
+    if not data.is_dir():
+        raise PipelineError(f"{data}: no such folder of meshes")
+    torch.set_num_threads(threads)
+    record = train(data, out, TrainSettings(epochs=epochs, points=points, curvature_weight=curvature_weight,
+                                            seed=seed), show_progress=sys.stderr.isatty(),
+                   log=lambda line: None if sys.stderr.isatty() else click.echo(line, err=True))
+    last = record.history[-1]
+    click.echo(f"{out}: {len(record.train)} training / {len(record.test)} test meshes, {epochs} epochs in "
+               f"{record.seconds / 60:.1f} min; final loss {last['loss']:.5f} (CD {last['chamfer']:.5f}, "
+               f"CE {last['curvature_error']:.4f})")
+
+
+@click.command("train-detail")
+@click.option("--data", type=click.Path(path_type=Path, file_okay=False), required=True,
+              help="Folder of TOSCA-style meshes; the same 80/20 split by pose within class as `train`.")
+@click.option("--out", type=click.Path(path_type=Path), default=Path("model/learning/weights/detail.pt"),
+              show_default=True, help="Where to save the weights, with the split and the test scores.")
+@click.option("--epochs", type=int, default=12, show_default=True)
+@click.option("--views", type=int, default=3, show_default=True, help="Scanner views of each training mesh.")
+@click.option("--seed", type=int, default=0, show_default=True)
+def train_detail_command(data: Path, out: Path, epochs: int, views: int, seed: int) -> None:
+    """Train the curvature-loss predictor of the default `learned` method (model/detail.py); about 4 min on 2 cores."""
+    from model.learning.detail_training import DetailSettings, train_detail
+
+    if not data.is_dir():
+        raise PipelineError(f"{data}: no such folder of meshes")
+    record = train_detail(data, out, DetailSettings(epochs=epochs, views_per_mesh=views, seed=seed),
+                          log=lambda line: click.echo(line, err=True))
+    last = record["history"][-1]
+    click.echo(f"{out}: {len(record['train'])} training / {len(record['test'])} test meshes in "
+               f"{record['seconds'] / 60:.1f} min; test correlation {last['test_correlation']:.3f}")

@@ -1,0 +1,224 @@
+"""The phases of a run between reading and writing, each a call the runner makes: bucket the scan and plan
+its tiles, survey them, set their budgets, make their jobs, and stitch the finished tiles into outputs."""
+from __future__ import annotations
+
+import math
+from concurrent.futures import Executor
+from dataclasses import dataclass
+from importlib.metadata import version
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable
+
+import numpy as np
+
+from model.methods import Fill
+from model.rules import kept_count
+from pipeline.config import RunConfig, parse_size
+from pipeline.engine.classes import ClassRule
+from pipeline.engine.execute import map_tasks
+from pipeline.engine.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, sort_crowded, survey_tile
+from pipeline.engine.workdir import BucketedPiece, WorkDir
+from pipeline.errors import PipelineError
+from pipeline.io.crs import crs_wkt
+from pipeline.io.output_meta import OutputMeta
+from pipeline.io.scan import Piece, Scan
+from pipeline.io.writers import write_output
+from pipeline.progress import Progress, counted
+from tiling.assemble import level_parts, seam_rejections
+from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
+from tiling.budgets import (coverage_weights, even_spacing, grouped_budgets, nested_budgets, pooled_median,
+                            saliency_weights, voxels_at)
+from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
+from tiling.store import Slice
+
+if TYPE_CHECKING:
+    from dask.distributed import Client
+
+RESERVE_SHARE = 0.05               # extra picks per tile, in priority order, for the seam top-up
+RESERVE_MIN = 16
+
+
+def bucket_scan(client: Client | Executor, scan: Scan, pieces: list[Piece], work: WorkDir, config: RunConfig, rule: ClassRule,
+                progress: Progress) -> tuple[TilePlan, list[list[Slice]], np.ndarray, np.ndarray]:
+    """The one streamed pass: pieces stored sorted by grid cell (those an earlier attempt finished are
+    reused); then the plan from the summed density, each tile's core+halo as row slices of the pieces,
+    the (tiles,) core points `rule` keeps whole and the scan's (256,) points per class."""
+    mins, maxs = scan.bounds
+    try:
+        grid = DensityGrid.covering(mins, maxs, config.tile_size)
+    except ValueError as exc:
+        raise PipelineError(f"{scan.paths[0]}: {exc}: pass a larger --tile-size") from None
+    finished = {piece.number: work.finished_piece(piece.number) for piece in pieces}
+    pending = [piece for piece in pieces if finished[piece.number] is None]
+    fresh = map_tasks(client, bucket_piece, pending, scan, grid, str(work.path), rule, desc="read and bucket",
+                      progress=progress, weight=lambda result: int(result.starts[-1]))
+    finished.update({piece.number: result for piece, result in zip(pending, fresh)})
+    buckets = [finished[piece.number] for piece in pieces]
+    cells, counts = summed_cells([b.cells for b in buckets], [np.diff(b.starts) for b in buckets])
+    _, protected = summed_cells([b.cells for b in buckets], [b.protected for b in buckets])
+    crowded = crowded_cells(cells, counts, config.max_tile_points)
+    copies = sort_crowded_cells(client, crowded, pieces, buckets, grid, work, config, rule, progress)
+    sub_counts = sum(c.counts for c in copies.values()) if copies else None
+    plan = plan_tiles(grid, cells, counts, config.max_tile_points, sub_counts)
+    whole = plan.per_tile(protected, sum(c.protected for c in copies.values()) if copies else None)  # plan.cells == cells
+    boxes = cell_boxes([b.cells for b in buckets], grid.shape[1])
+    slices: list[list[Slice]] = []
+    for tile_id in range(len(plan.tiles)):  # only the pieces a halo meets (not every piece for every tile)
+        i0, i1, j0, j1 = plan.halo_cell_rect(tile_id, seen_overlap(config))
+        meets = np.flatnonzero((boxes[:, 0] < i1) & (boxes[:, 1] > i0) & (boxes[:, 2] < j1) & (boxes[:, 3] > j0))
+        slices.append([s for k in meets for s in halo_slices(plan, tile_id, seen_overlap(config), pieces[k].number,
+                                                             buckets[k].cells, buckets[k].starts,
+                                                             copies.get(pieces[k].number))])
+    return plan, slices, whole, np.sum([b.classes for b in buckets], axis=0)
+
+
+def sort_crowded_cells(client: Client | Executor, crowded: np.ndarray, pieces: list[Piece],
+                       buckets: list[BucketedPiece], grid: DensityGrid, work: WorkDir, config: RunConfig,
+                       rule: ClassRule, progress: Progress) -> dict[int, SubCellIndex]:
+    """Each piece's rows in the cells over the tile limit, copied sorted by sub-cell (one task per piece
+    holding any): the sub-cell starts of each copy by piece number, from which the plan splits those
+    cells and their tiles read only their own sub-cells. Empty when no cell is crowded."""
+    if len(crowded) == 0:
+        return {}
+    cell_ranges = np.column_stack([crowded, crowded + 1])
+    shares = [tuple(Slice(piece.number, int(lo), int(hi)) for lo, hi in row_ranges(b.cells, b.starts, cell_ranges))
+              for piece, b in zip(pieces, buckets)]
+    shares = [share for share in shares if share]
+    copies = map_tasks(client, sort_crowded, shares, str(work.store_path), grid, crowded, rule,
+                       chunk_cache_bytes(config), desc="sort crowded cells", progress=progress)
+    return {share[0].piece: copy for share, copy in zip(shares, copies)}
+
+
+def crowded_cells_note(plan: TilePlan, max_points: int, tile_size_m: float) -> str | None:
+    """Say so when tiles hold more than max_points: a crowded cell is split down to sub-cells (tile size /
+    512) and no further, so such a tile's task needs memory for all of its points; the tile size that
+    would split them, were the points spread evenly over the sub-cell."""
+    crowded = [tile.count for tile in plan.tiles if tile.count > max_points]
+    if not crowded:
+        return None
+    most = max(crowded)
+    smaller = tile_size_m * math.sqrt(max_points / most)
+    return (f"{len(crowded)} sub-cell(s) of tile size / {CELLS_PER_TILE * SUB_CELLS} hold more than --max-tile-points "
+            f"({max_points:,}) points, up to {most:,}: each is one tile and its task needs memory for all of "
+            f"them; a --tile-size of about {smaller:.2g} m or less would split them")
+
+
+COVERAGE_LEVELS = 2.0 ** np.arange(-4, 5)  # voxel sizes, relative to the 2-D spacing estimate
+
+
+def survey_scan(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], work: WorkDir, config: RunConfig,
+                target: int, progress: Progress) -> tuple[list[TileSurvey], np.ndarray]:
+    """Every tile's survey (those an earlier attempt finished are read back) and the voxel sizes (levels,)
+    around the spacing `target` points give the scan, at which each counted its occupied voxels."""
+    cell_area = plan.grid.cell ** 2
+    spacing = float(np.sqrt(sum(t.occupied for t in plan.tiles) * cell_area / max(target, 1)))
+    sizes = tuple(float(s) for s in spacing * COVERAGE_LEVELS)
+    jobs = [SurveyJob(str(work.store_path), str(work.survey_path(tile_id)), tile_id, tuple(slices[tile_id]),
+                      seen_overlap(config), chunk_cache_bytes(config), sizes, config.simplifier, config.ratio, config.seed,
+                      ClassRule.of(config))
+            for tile_id in range(len(plan.tiles))]
+    pending = [job for job in jobs if not Path(job.survey_path).is_file()]
+    fresh = dict(zip((job.tile_id for job in pending),
+                     map_tasks(client, survey_tile, pending, plan, desc="survey tiles", progress=progress,
+                               cost=core_points(plan))))
+    surveys = [fresh[job.tile_id] if job.tile_id in fresh else load_survey(Path(job.survey_path)) for job in jobs]
+    return surveys, np.array(sizes)
+
+
+@dataclass(frozen=True)
+class ScanFill:
+    """The scan-wide settings of a stratified method's tiles: (tiles,) detail scales and the hole radius."""
+
+    detail_scales: np.ndarray
+    cover_radius: float
+
+
+def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray, target: int,
+              cover_spacings: float) -> tuple[np.ndarray, ScanFill]:
+    """Tile weights for the budgets and the fill settings that make tiles keep points as one stratified
+    pass over the whole scan would: weights 1 + loss / the scan's mean loss, and a hole radius of
+    `cover_spacings` times the scan's typical pick spacing, but never finer than the even spacing `target`
+    points can cover (below it the floors would exceed the target and tiles cut their hole cover short)."""
+    weights, scales = saliency_weights(np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys]),
+                                       np.array([s.loss_sum for s in surveys]))
+    spacing = pooled_median([s.spacings for s in surveys], np.array([s.picks for s in surveys]))
+    return weights, ScanFill(scales, max(cover_spacings * spacing, even_spacing(occupied, sizes, target)))
+
+
+def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], counts: np.ndarray,
+                 work: WorkDir, config: RunConfig, progress: Progress) -> tuple[np.ndarray, ScanFill | None]:
+    """(tiles,) budgets for the (tiles,) points each tile thins, summing to round(ratio * their sum), and
+    the fill settings of a stratified method's tiles (None for other methods): a method that spaces points
+    evenly or follows saliency surveys every tile first, so tiles share out the points as one pass over
+    the whole scan would."""
+    target = kept_count(config.ratio, int(counts.sum()))
+    weights, floors, fill = None, np.minimum(counts, 1), None  # no tile left empty
+    simplifier = config.simplifier
+    if simplifier.spaces_evenly or isinstance(simplifier, Fill):
+        surveys, sizes = survey_scan(client, plan, slices, work, config, target, progress)
+        occupied = np.array([survey.occupied for survey in surveys])
+        if simplifier.spaces_evenly:  # tiles share out the points as one pass over the whole scan would
+            weights = coverage_weights(occupied, sizes, target)
+        else:  # saliency shared as one pass would; a point in every voxel of the hole radius, so every tile
+            weights, fill = scan_fill(surveys, occupied, sizes, target,  # keeps enough to cover its holes
+                                      simplifier.cover_spacings)
+            floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)
+    budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights)
+    return budgets, fill
+
+
+def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray, whole: np.ndarray,
+              config: RunConfig, fill: ScanFill | None = None) -> list[TileJob]:
+    """One job per tile that keeps a point (a budget, or points kept whole), in tile order: neighbours
+    share pieces, so caches stay warm."""
+    jobs = []
+    for tile_id, tile in enumerate(plan.tiles):
+        budget = int(budgets[tile_id])
+        if budget == 0 and whole[tile_id] == 0:
+            continue
+        reserve = min(tile.count - int(whole[tile_id]) - budget, max(RESERVE_MIN, int(np.ceil(RESERVE_SHARE * budget))))
+        surveyed = {} if fill is None else dict(survey_path=str(work.survey_path(tile_id)),
+                                                 detail_scale=float(fill.detail_scales[tile_id]),
+                                                 cover_radius=fill.cover_radius)
+        jobs.append(TileJob(str(work.store_path), str(work.tile_path(tile_id)), tile_id, tuple(slices[tile_id]),
+                            seen_overlap(config), chunk_cache_bytes(config), budget, reserve, config.simplifier,
+                            config.seed, **surveyed, rule=ClassRule.of(config)))
+    return jobs
+
+
+def stitch_outputs(scan: Scan, outputs: list[Path], plan: TilePlan, results: dict[int, str], budgets: np.ndarray,
+                   thinned: int, whole: int, config: RunConfig, settings: dict[str, Any],
+                   progress: Progress) -> list[int]:
+    """Resolve the seams once, then write each output level from the finished tiles' `results` (tile id ->
+    result file), one tile in memory at a time; the points written to each. `thinned` points were
+    thinned to `budgets`, `whole` kept whole (in every level)."""
+    with progress.phase("resolve seams", len(results), unit="tile") as phase:
+        rejections = seam_rejections(plan, results, budgets, config.seam_tolerance, on_tile=phase.update)
+    written = []
+    for path, ratio in zip(outputs, config.levels or (config.ratio,)):
+        level = nested_budgets(budgets, kept_count(ratio, thinned))
+        meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], ratio, config.method,
+                          version("lidar-simplify"), settings, config.simplifier.trained_weights())
+        with progress.phase(f"write {path.name}", len(results), unit="tile") as phase:
+            parts = counted(level_parts(plan, results, budgets, level, rejections, scan.scales,
+                                                scan.offsets), phase,
+                            lambda part: len(part.records))
+            written.append(write_output(path, scan.header, int(level.sum()) + whole, parts, meta))
+    return written
+
+
+def core_points(plan: TilePlan) -> Callable[[TileJob | SurveyJob], int]:
+    """A tile task's expected work for map_tasks' submission order: its tile's core points."""
+    return lambda job: plan.tiles[job.tile_id].count
+
+
+def seen_overlap(config: RunConfig) -> float:
+    """How far past its core a tile is loaded: the halo, or nothing for a method that never looks at it
+    (fps, voxel, random pick from the core alone: the same picks, without reading and holding the halo,
+    up to 0.9x a dense tile's core on a mobile street)."""
+    return config.overlap if config.simplifier.reads_halo else 0.0
+
+
+def chunk_cache_bytes(config: RunConfig) -> int:
+    """Memory each process may spend caching stored row chunks (`cache_memory`, part of its memory limit)."""
+    return parse_size(config.cache_memory, "cache-memory")

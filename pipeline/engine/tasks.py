@@ -1,0 +1,197 @@
+"""The work Dask workers do: bucket a piece into the store (counting its density), copy its rows in crowded
+cells sorted by sub-cell, survey a tile, simplify a tile.
+
+Each function takes plain picklable data and touches only its own piece or tile, so any worker of a
+local or remote cluster can run it, in any order, with the same result.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from model.methods import Fill, Method
+from model.rules import grid_xyz, kept_count
+from model.selection import FillContext, FillLoss, Selection, Tile
+from model.stratified import pick_spacings
+from pipeline.engine.classes import ClassRule, class_histogram
+from pipeline.engine.workdir import BucketedPiece, WorkDir, save_npz, write_atomically
+from pipeline.io.scan import Piece, Scan
+from tiling.bucket import SubCellIndex, bucket_by_cell, bucket_by_sub_cell
+from tiling.budgets import occupied_voxels
+from tiling.plan import DensityGrid, TilePlan
+from tiling.store import Slice, StoredPoints, TileStore
+
+
+@dataclass(frozen=True)
+class TileJob:
+    """Everything a worker needs for one tile."""
+
+    store_path: str
+    result_path: str
+    tile_id: int
+    slices: tuple[Slice, ...]
+    overlap: float
+    cache_bytes: int
+    budget: int
+    reserve: int
+    simplifier: Method  # the method with its parameters (model.methods)
+    seed: int
+    survey_path: str | None = None  # a stratified method's survey of this tile (its fill loss)
+    detail_scale: float = 0.0       # the tile's loss level over the scan's (model.selection.FillContext)
+    cover_radius: float = 0.0       # the scan-wide hole radius, scan units
+    rule: ClassRule = ClassRule()   # core points it keeps whole are saved apart and never thinned
+
+
+@dataclass(frozen=True)
+class TileOutcome:
+    """What a finished tile reports back: counts and time; the picks stay on disk."""
+
+    tile_id: int
+    points: int
+    kept: int
+    seconds: float
+
+
+def bucket_piece(piece: Piece, scan: Scan, grid: DensityGrid, work_path: str, rule: ClassRule) -> BucketedPiece:
+    """Read one piece once, store its rows sorted by grid cell, record it as done in the work folder;
+    return its occupied cells, row starts, points kept whole per cell and points per class."""
+    chunk = scan.read(piece)
+    buckets = bucket_by_cell(chunk.records, chunk.xyz, piece.first, grid)
+    protected_cells = grid.cell_of(chunk.xyz[rule.protected(chunk.records)])
+    per_cell = np.bincount(np.searchsorted(buckets.cells, protected_cells), minlength=len(buckets.cells))
+    bucketed = BucketedPiece(buckets.cells, buckets.starts, per_cell.astype(np.int64), class_histogram(chunk.records))
+    work = WorkDir(Path(work_path))
+    TileStore.open(work.store_path).write_piece(piece.number, buckets.rows)
+    work.save_piece(piece.number, bucketed)
+    return bucketed
+
+
+def tile_seed(run_seed: int, tile_id: int) -> int:
+    """A tile's own seed: fixed by the run seed and the tile id, whatever worker runs it."""
+    return int(np.random.SeedSequence([run_seed, tile_id]).generate_state(1)[0])
+
+
+def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
+    """Pick budget+reserve core points of one tile in priority order; save their records and xyz to
+    result_path, so the stitch reads only the kept points, not every tile's core and halo again; core
+    points the class rule keeps whole are saved apart (`whole`) and were never candidates."""
+    started = time.perf_counter()
+    tile, records, whole = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap,
+                                     job.seed, job.rule)
+    if job.survey_path is not None:
+        loss = load_fill_loss(Path(job.survey_path))
+        context = FillContext(loss, job.detail_scale, job.cover_radius, kept=job.budget)
+        tile = Tile(tile.xyz, tile.core, tile.centre, tile.seed, context)
+    count = min(job.budget + job.reserve, tile.core_count)
+    picked = job.simplifier(tile, count) if count else Selection.of(tile, np.empty(0, np.int64))
+    write_atomically(Path(job.result_path),
+                     lambda tmp: save_npz(tmp, records=records[picked.indices], xyz=picked.xyz + tile.centre,
+                                          whole=records[whole], whole_xyz=tile.xyz[whole] + tile.centre))
+    return TileOutcome(job.tile_id, len(tile.xyz), len(picked.indices) + len(whole), time.perf_counter() - started)
+
+
+def load_tile(store_path: str, slices: tuple[Slice, ...], cache_bytes: int, plan: TilePlan, tile_id: int,
+              overlap: float, run_seed: int, rule: ClassRule) -> tuple[Tile, np.ndarray, np.ndarray]:
+    """A tile's core and halo points, centred on the core's mean, their raw records (same order), and the
+    indices of the core points `rule` keeps whole: they stay in the tile as context, outside its core."""
+    store = TileStore.open(Path(store_path))
+    scales, offsets = stored_scaling(store)
+
+    def seen(points: StoredPoints) -> np.ndarray:
+        xyz = grid_xyz(points.records, scales, offsets)
+        return plan.halo_mask(plan.core_mask(tile_id, xyz), tile_id, xyz, overlap)
+
+    records = store.load(slices, cache_bytes, keep=seen).records  # a crowded neighbour is never held whole
+    xyz = grid_xyz(records, scales, offsets)
+    core = plan.core_mask(tile_id, xyz)
+    protected = core & rule.protected(records)
+    core &= ~protected
+    centre = xyz[core | protected].mean(axis=0) if (core | protected).any() else np.zeros(3)
+    return Tile(xyz - centre, core, centre, tile_seed(run_seed, tile_id)), records, np.flatnonzero(protected)
+
+
+def stored_scaling(store: TileStore) -> tuple[np.ndarray, np.ndarray]:
+    """The (3,) scales and offsets that turn the store's records into coordinates."""
+    attrs = store.attrs
+    return np.asarray(attrs["scales"]), np.asarray(attrs["offsets"])
+
+
+def sort_crowded(slices: tuple[Slice, ...], store_path: str, grid: DensityGrid, crowded: np.ndarray,
+                 rule: ClassRule, cache_bytes: int) -> SubCellIndex:
+    """Copy one piece's rows in the crowded cells (`slices`, all of one piece) into the store sorted by
+    sub-cell, so the tiles that split those cells read only their own sub-cells; return where the copy
+    holds each sub-cell and the points per sub-cell `rule` keeps whole. Holds at most the piece's rows."""
+    store = TileStore.open(Path(store_path))
+    scales, offsets = stored_scaling(store)
+    stored = store.load(slices, cache_bytes)
+    rows, index = bucket_by_sub_cell(stored.records, stored.index, grid_xyz(stored.records, scales, offsets),
+                                     rule.protected(stored.records), grid, crowded)
+    store.write_piece(slices[0].piece, rows, crowded=True)
+    return index
+
+
+@dataclass(frozen=True)
+class SurveyJob:
+    """One tile to survey before budgets are set: its occupied voxels at each of `sizes` (scan units),
+    and for a stratified method its fill loss (saved to survey_path) and pick spacing."""
+
+    store_path: str
+    survey_path: str
+    tile_id: int
+    slices: tuple[Slice, ...]
+    overlap: float
+    cache_bytes: int
+    sizes: tuple[float, ...]
+    simplifier: Method
+    ratio: float
+    seed: int
+    rule: ClassRule = ClassRule()
+
+
+@dataclass(frozen=True)
+class TileSurvey:
+    """What a tile tells the run: occupied voxels (levels,), its core count, mean absolute fill loss,
+    the relative loss summed over the core, and (quantiles,) spacings of a trial fill's picks, of `picks`."""
+
+    occupied: np.ndarray
+    core_count: int
+    level: float
+    loss_sum: float
+    spacings: np.ndarray
+    picks: int
+
+
+def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
+    """Measure one tile at the scan's ratio and keep the measurement in the work folder (a resumed run reads it)."""
+    tile, _, _ = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap, job.seed,
+                           job.rule)
+    occupied = occupied_voxels(tile.xyz[tile.core], np.asarray(job.sizes))
+    budget = kept_count(job.ratio, tile.core_count)
+    loss, spacings = FillLoss(None, 0.0), np.empty(0)
+    if isinstance(job.simplifier, Fill) and budget > 0:
+        loss = job.simplifier.fill_loss(tile, budget)
+        spacings = pick_spacings(tile, budget, loss)
+    loss_sum = float(loss.relative[tile.core].sum()) if loss.relative is not None else 0.0
+    survey = TileSurvey(occupied, tile.core_count, loss.level, loss_sum, spacings, budget)
+    arrays = {} if loss.relative is None else {"relative": loss.relative.astype(np.float32)}
+    write_atomically(Path(job.survey_path), lambda tmp: save_npz(
+        tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
+        spacings=spacings, picks=budget, **arrays))
+    return survey
+
+
+def load_survey(path: Path) -> TileSurvey:
+    """A finished survey's summary (the per-point loss stays on disk)."""
+    with np.load(path) as saved:
+        return TileSurvey(saved["occupied"], int(saved["core_count"]), float(saved["level"]), float(saved["loss_sum"]),
+                          saved["spacings"], int(saved["picks"]))
+
+
+def load_fill_loss(path: Path) -> FillLoss:
+    """A survey's fill loss for the simplify step (relative None when the method weighs points equally)."""
+    with np.load(path) as saved:
+        relative = saved["relative"].astype(np.float64) if "relative" in saved.files else None
+        return FillLoss(relative, float(saved["level"]))

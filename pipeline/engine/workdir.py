@@ -1,0 +1,123 @@
+"""A run's resumable work folder: the bucketed store, each finished piece and tile, and a manifest.
+
+The folder's name holds a key of everything that decides the output (the inputs' paths, sizes and
+modification times, the settings, the package version), so re-running the same command after a
+crash or a kill finds it and skips the finished work, while a changed command starts afresh. Every
+result file is written under a temporary name and renamed: a file that exists is complete.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import shutil
+from dataclasses import asdict, dataclass
+from importlib.metadata import version
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from model.registry import changed_parameters
+from pipeline.config import RunConfig
+from pipeline.io.atomic import atomic_output
+
+MANIFEST = "manifest.json"
+RESULT_SETTINGS = ("ratio", "method", "tile_size", "overlap", "max_tile_points", "seam_tolerance",
+                   "chunk_points", "seed", "keep_classes", "thin_classes", "levels")  # the settings that change the output; workers and memory do not
+
+
+def output_settings(config: RunConfig) -> dict[str, Any]:
+    """The settings that decide the output (not workers or memory, so outputs match whatever runs them),
+    with the method's parameters where they differ from its defaults."""
+    settings = {name: value for name, value in asdict(config).items() if name in RESULT_SETTINGS}
+    if changed := changed_parameters(config.method, config.simplifier):
+        settings["method_parameters"] = changed
+    return settings
+
+
+def run_key(inputs: Sequence[Path], config: RunConfig) -> str:
+    """A digest of the inputs (resolved path, size, mtime), the output-deciding settings, every parameter
+    of the method (read from its fields, so none can be left out) and the version."""
+    settings = {**output_settings(config), "method_parameters": config.simplifier.parameters()}
+    files = [(str(path.resolve()), path.stat().st_size, path.stat().st_mtime_ns) for path in inputs]
+    text = json.dumps({"inputs": files, "settings": settings, "version": version("lidar-simplify")}, sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def write_atomically(path: Path, write: Callable[[Path], None]) -> None:
+    """Call write(temporary_path) and rename the result to `path`, so `path` is complete or absent."""
+    with atomic_output(path) as temporary:
+        write(temporary)
+
+
+@dataclass(frozen=True)
+class BucketedPiece:
+    """What bucketing a piece tells the run: its occupied grid cells (cells,), their row starts in the stored
+    piece (cells+1,), the points of each cell a class rule keeps whole (cells,), and points per class (256,)."""
+
+    cells: np.ndarray
+    starts: np.ndarray
+    protected: np.ndarray
+    classes: np.ndarray
+
+
+class WorkDir:
+    """The work folder of one run, `.<output name>.work-<key>` in the scratch folder."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+
+    @classmethod
+    def for_run(cls, output: Path, scratch: Path | None, inputs: Sequence[Path], config: RunConfig) -> "WorkDir":
+        """The folder of this exact run, created with its manifest if it does not exist yet."""
+        key = run_key(inputs, config)
+        work = cls((scratch or output.parent) / f".{output.name}.work-{key}")
+        if not (work.path / MANIFEST).is_file():
+            work.path.mkdir(parents=True, exist_ok=True)
+            manifest = {"key": key, "output": str(output), "inputs": [str(p) for p in inputs],
+                        "settings": asdict(config)}
+            write_atomically(work.path / MANIFEST, lambda tmp: tmp.write_text(json.dumps(manifest, indent=2)))
+        return work
+
+    @property
+    def store_path(self) -> Path:
+        """The bucketed points (tiling.store.TileStore)."""
+        return self.path / "tiles.zarr"
+
+    def piece_path(self, number: int) -> Path:
+        """Where a bucketed piece's occupied cells and row starts are kept once its rows are stored."""
+        return self.path / f"piece-{number}.npz"
+
+    def survey_path(self, tile_id: int) -> Path:
+        """Where a tile's survey (coverage, and a stratified method's fill loss) is kept."""
+        return self.path / f"survey-{tile_id}.npz"
+
+    def tile_path(self, tile_id: int) -> Path:
+        """Where a simplified tile's picks are kept."""
+        return self.path / f"tile-{tile_id}.npz"
+
+    def finished_piece(self, number: int) -> BucketedPiece | None:
+        """A bucketed piece from an earlier attempt, or None."""
+        path = self.piece_path(number)
+        if not path.is_file():
+            return None
+        with np.load(path) as saved:
+            return BucketedPiece(saved["cells"], saved["starts"], saved["protected"], saved["classes"])
+
+    def save_piece(self, number: int, piece: BucketedPiece) -> None:
+        """Record a piece as bucketed (after its rows are in the store)."""
+        write_atomically(self.piece_path(number), lambda tmp: save_npz(tmp, **asdict(piece)))
+
+    def has_results(self) -> bool:
+        """Whether any piece, survey or tile finished: worth keeping for a resume."""
+        return any(any(self.path.glob(f"{kind}-*.npz")) for kind in ("piece", "survey", "tile"))
+
+    def remove(self) -> None:
+        """Delete the folder: the run finished and its output is in place."""
+        shutil.rmtree(self.path, ignore_errors=True)
+
+
+def save_npz(path: Path, **arrays: np.ndarray) -> None:
+    """np.savez to exactly `path` (given a name, numpy would append .npz)."""
+    with open(path, "wb") as file:
+        np.savez(file, **arrays)

@@ -1,0 +1,65 @@
+"""What an output says about how it was made: `lidar-simplify <version>` and the date in the LAS header,
+and a JSON record (method, ratio, model weights, settings, sources) in a VLR and in zarr attributes."""
+from __future__ import annotations
+
+import copy
+import datetime
+import hashlib
+import json
+from functools import lru_cache
+from importlib.metadata import version
+from pathlib import Path
+from typing import Any
+
+import laspy
+
+from pipeline.io.output_meta import OutputMeta
+
+SOFTWARE = "lidar-simplify"
+PROVENANCE_USER_ID = "lidar-simplify"  # 16 bytes at most in a VLR
+PROVENANCE_RECORD_ID = 1
+
+
+def software_name() -> str:
+    """`lidar-simplify <version>`, what the header's generating-software field holds (32 bytes at most)."""
+    return f"{SOFTWARE} {version(SOFTWARE)}"[:32]
+
+
+@lru_cache(maxsize=None)
+def weights_digest(path: Path | None) -> str | None:
+    """`<file name>:<the first 16 hex digits of its SHA-256>` of a method's trained weights (None: it has none)."""
+    if path is None:
+        return None
+    return f"{path.name}:{hashlib.sha256(path.read_bytes()).hexdigest()[:16]}"
+
+
+def run_record(meta: OutputMeta) -> dict[str, Any]:
+    """The JSON-able provenance of one output: software, date, method, ratio, model weights, settings, sources."""
+    return {"software": SOFTWARE, "version": version(SOFTWARE), "created": datetime.date.today().isoformat(),
+            "method": meta.method, "ratio": meta.ratio, "model_weights": weights_digest(meta.trained_weights),
+            "settings": meta.settings, "sources": meta.sources}
+
+
+def provenance_vlr(meta: OutputMeta) -> laspy.VLR:
+    """A VLR whose record data is the run record as UTF-8 JSON."""
+    payload = json.dumps(run_record(meta), sort_keys=True).encode()
+    return laspy.VLR(PROVENANCE_USER_ID, PROVENANCE_RECORD_ID, "simplification settings (JSON)", payload)
+
+
+def read_provenance(header: laspy.LasHeader) -> dict[str, Any] | None:
+    """The run record a lidar-simplify output carries, or None for any other file."""
+    for vlr in header.vlrs:
+        if vlr.user_id == PROVENANCE_USER_ID and vlr.record_id == PROVENANCE_RECORD_ID:
+            return json.loads(bytes(vlr.record_data).rstrip(b"\0"))
+    return None
+
+
+def stamped_header(header: laspy.LasHeader, meta: OutputMeta) -> laspy.LasHeader:
+    """A copy of the input's header that names this software and today, and carries the run record
+    (replacing the record of an earlier simplification of the same points)."""
+    stamped = copy.deepcopy(header)
+    stamped.generating_software = software_name()
+    stamped.creation_date = datetime.date.today()
+    stamped.vlrs[:] = [v for v in stamped.vlrs if v.user_id != PROVENANCE_USER_ID]  # in place: a new list makes
+    stamped.vlrs.append(provenance_vlr(meta))  # laspy regenerate the extra-bytes VLRs (two of them became one)
+    return stamped

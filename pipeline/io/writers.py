@@ -1,0 +1,77 @@
+"""Output writers: LAS/LAZ with the input's header here, zarr in pipeline.io.zarr_output; chosen by suffix."""
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Iterable
+
+import laspy
+
+from pipeline.errors import PipelineError, file_system_error
+from pipeline.io.atomic import atomic_output
+from pipeline.io.copc_output import write_copc
+from pipeline.io.output_meta import OutputMeta
+from pipeline.io.provenance import stamped_header
+from pipeline.io.zarr_output import write_zarr
+from tiling.assemble import TilePart
+
+OUTPUT_SUFFIXES = (".las", ".laz", ".zarr")  # .copc.laz is a .laz suffix
+COPC_SUFFIX = ".copc.laz"
+
+
+def write_output(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[TilePart], meta: OutputMeta) -> int:
+    """Write the parts to path (by suffix) through a temporary name; return the points written.
+
+    A write that fails (a full disk) leaves nothing under either name and is reported against `path`.
+    """
+    suffix = path.suffix.lower()
+    if suffix not in OUTPUT_SUFFIXES:
+        raise PipelineError(f"{path}: unsupported output type {suffix or '(none)'} "
+                            "(use .las, .laz, .copc.laz or .zarr)")
+    try:
+        with atomic_output(path) as temporary:
+            if suffix == ".zarr":
+                written = write_zarr(temporary, header, total, parts, meta)
+            elif path.name.lower().endswith(COPC_SUFFIX):
+                written = write_copc(temporary, stamped_header(header, meta), total, parts, meta)
+            else:
+                written = _write_las(temporary, stamped_header(header, meta), parts, compress=suffix == ".laz")
+    except OSError as exc:
+        raise file_system_error(exc, path) from None
+    return written
+
+
+class RecordingFile(io.FileIO):
+    """A file opened for writing that keeps the OSError of a failed write (a full disk): lazrs reports
+    one only as 'IoError: Failed to call write', which names neither the cause nor the file."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(path, "w")
+        self.error: OSError | None = None
+
+    def write(self, data: bytes) -> int:  # type: ignore[override]
+        try:
+            return super().write(data)
+        except OSError as exc:
+            self.error = exc
+            raise
+
+
+def _write_las(path: Path, header: laspy.LasHeader, parts: Iterable[TilePart], compress: bool) -> int:
+    """Stream the parts into a LAS/LAZ file, then the input's EVLRs; laspy fills in count and bounds on close."""
+    written = 0
+    evlrs = header.evlrs
+    raw = RecordingFile(path)
+    try:
+        with io.BufferedWriter(raw) as stream, \
+                laspy.open(stream, mode="w", header=header, do_compress=compress, closefd=False) as writer:
+            for part in parts:
+                writer.write_points(laspy.PackedPointRecord(part.records, header.point_format))
+                written += len(part.records)
+            if evlrs:
+                writer.write_evlrs(evlrs)
+    except Exception:
+        if raw.error is not None:
+            raise raw.error from None
+        raise
+    return written

@@ -1,0 +1,88 @@
+"""A method's parameters: given by a config file's [method.<name>] table, the API's `method_parameters` or a
+simplifier object; checked in one line; carried to the workers; part of the work folder's key without
+being listed anywhere; recorded in an output's provenance where they differ from the defaults."""
+from __future__ import annotations
+
+import pickle
+import subprocess
+import sys
+
+import laspy
+import numpy as np
+import pytest
+
+import pipeline
+from model.methods import Paper, Voxel
+from model.registry import REGISTERED, get_simplifier, method_name
+from pipeline.config import build_config
+from pipeline.engine.workdir import output_settings, run_key
+from pipeline.errors import PipelineError
+from pipeline.io.provenance import read_provenance
+from tests.test_units import write_patch
+
+
+def test_registered_methods_are_picklable_values():
+    for method in REGISTERED.values():
+        assert pickle.loads(pickle.dumps(method)) == method and hash(method) == hash(pickle.loads(pickle.dumps(method)))
+    assert get_simplifier("paper", refine=True) == REGISTERED["paper-refined"]
+    assert method_name(Paper(refine=True)) == "paper" and method_name(Voxel(slack=0.1)) == "voxel"
+
+
+def test_parameters_from_a_config_table_the_api_and_an_object(tmp_path):
+    path = tmp_path / "run.toml"
+    path.write_text('[run]\nmethod = "voxel"\n[method.voxel]\nslack = 0.1\n[method.learned]\ncover_spacings = 3\n')
+    assert build_config(str(path)).simplifier == Voxel(slack=0.1)
+    assert build_config(str(path), method="learned").simplifier.cover_spacings == 3.0  # an int where a float goes
+    assert build_config(str(path), method_parameters={"slack": 0.2}).simplifier == Voxel(slack=0.2)  # API wins
+    assert build_config(method=Voxel(slack=0.3)).simplifier == Voxel(slack=0.3)
+    assert build_config(method="fps").method_parameters == ()
+
+
+@pytest.mark.parametrize("text, message", [
+    ('[run]\nmethod = "voxel"\n[method.voxel]\nslak = 0.1\n', "method 'voxel' has no parameter 'slak' (it takes: slack)"),
+    ('[run]\nmethod = "voxel"\n[method.voxel]\nslack = "much"\n', "parameter 'slack' must be a number, got 'much'"),
+    ('[run]\nmethod = "fps"\n[method.fps]\nslack = 0.1\n', "method 'fps' has no parameter 'slack' (it takes: no parameters)"),
+    ('[method.voxl]\nslack = 0.1\n', "[method.voxl]: unknown method"),
+    ('[method]\nslack = 0.1\n', "[method] must hold one table per method"),
+])
+def test_a_bad_parameter_is_one_line(tmp_path, text, message):
+    path = tmp_path / "run.toml"
+    path.write_text(text)
+    with pytest.raises(PipelineError, match=None) as caught:
+        build_config(str(path))
+    assert message in str(caught.value) and "\n" not in str(caught.value)
+
+
+def test_the_work_folder_key_follows_every_parameter_and_provenance_the_changed_ones(tmp_path):
+    scan = tmp_path / "scan.las"
+    write_patch(scan, 26917, 1.0, n=4_000)
+    default, same, changed = (build_config(method="voxel"), build_config(method=Voxel()),
+                              build_config(method="voxel", method_parameters={"slack": 0.1}))
+    assert run_key([scan], default) == run_key([scan], same) != run_key([scan], changed)
+    assert "method_parameters" not in output_settings(default)  # outputs of default runs stay as they were
+    assert output_settings(changed)["method_parameters"] == {"slack": 0.1}
+
+
+def test_a_parameter_reaches_the_workers(tmp_path):
+    """A cluster run (pickled jobs) with a looser voxel slack keeps other points than the default, and the
+    output records the parameter."""
+    scan = tmp_path / "scan.las"
+    write_patch(scan, 26917, 1.0, n=30_000)
+    settings = dict(ratio=0.1, tile_size=20.0, workers=1, in_process_points=0)
+    pipeline.run(scan, tmp_path / "default.las", method="voxel", **settings)
+    pipeline.run(scan, tmp_path / "loose.las", method=Voxel(slack=0.5), **settings)
+    default, loose = laspy.read(tmp_path / "default.las"), laspy.read(tmp_path / "loose.las")
+    assert len(default.points) == len(loose.points) == 3_000
+    assert not np.array_equal(np.sort(default.X), np.sort(loose.X))
+    assert read_provenance(loose.header)["settings"]["method_parameters"] == {"slack": 0.5}
+    assert "method_parameters" not in read_provenance(default.header)["settings"]
+
+
+def test_the_cli_names_a_bad_parameter_in_one_line(tmp_path):
+    scan, config = tmp_path / "scan.las", tmp_path / "run.toml"
+    write_patch(scan, 26917, 1.0, n=2_000)
+    config.write_text('[method.voxel]\nslack = -1\n')
+    result = subprocess.run([sys.executable, "-m", "pipeline.apps.cli", "run", str(scan), "-r", "0.1", "-m", "voxel",
+                             "-c", str(config), "-o", str(tmp_path / "out.las")], capture_output=True, text=True)
+    assert result.returncode == 2 and result.stderr.count("\n") == 1
+    assert "slack" in result.stderr and not (tmp_path / "out.las").exists()
