@@ -220,40 +220,29 @@ class BuildingBlock(Primitive):
         t[w[pane]], surf[w[pane]] = through_glass(tp, extra, rng, GLASS, INTERIOR, reg)
 
 
-class VerticalCylinder(Primitive):
-    """Vertical cylinder (pole, trunk)."""
+class Cylinder(Primitive):
+    """A cylinder along the z axis (pole, trunk: `along` 2, `centre` its x, y) or the y axis (lamp arm,
+    wheel: `along` 1, `centre` its x, z), from `lo` to `hi` along it."""
 
-    def __init__(self, side: int, cx: float, cy: float, rad: float, z0: float, z1: float, surf: Material) -> None:
-        self.side, self.c, self.rad, self.z, self.surf = side, (cx, cy), rad, (z0, z1), surf
-        self.kmin, self.kmax = key_range(cx - rad, cx + rad, cy - rad, cy + rad)
-
-    def cast(self, r: RayBundle, idx: np.ndarray, hits: NearestHits, reg: SurfaceTable,
-             rng: np.random.Generator) -> None:
-        px, py = r.ox - self.c[0], r.oy - self.c[1]
-        t = circle_entry(px, py, r.dx, r.dy, self.rad)
-        z = r.oz + t * r.dz
-        t = np.where((z >= self.z[0]) & (z <= self.z[1]), t, np.inf)
-        fin = np.where(np.isfinite(t), t, 0.0)
-        normal = ((px + fin * r.dx) / self.rad, (py + fin * r.dy) / self.rad, 0.0)
-        hits.offer(idx, t, normal, reg(self.surf))
-
-
-class CrossCylinder(Primitive):
-    """Horizontal cylinder along y (lamp arm, wheel)."""
-
-    def __init__(self, side: int, cx: float, cz: float, rad: float, y0: float, y1: float, surf: Material) -> None:
-        self.side, self.c, self.rad, self.y, self.surf = side, (cx, cz), rad, (y0, y1), surf
-        self.kmin, self.kmax = key_range(cx - rad, cx + rad, y0, y1)
+    def __init__(self, side: int, along: int, centre: tuple[float, float], rad: float, lo: float, hi: float,
+                 surf: Material) -> None:
+        self.side, self.along, self.c, self.rad, self.span, self.surf = side, along, centre, rad, (lo, hi), surf
+        self.cross = (0, 1) if along == 2 else (0, 2)  # the axes of its circle
+        ylo, yhi = (centre[1] - rad, centre[1] + rad) if along == 2 else (lo, hi)
+        self.kmin, self.kmax = key_range(centre[0] - rad, centre[0] + rad, ylo, yhi)
 
     def cast(self, r: RayBundle, idx: np.ndarray, hits: NearestHits, reg: SurfaceTable,
              rng: np.random.Generator) -> None:
-        px, pz = r.ox - self.c[0], r.oz - self.c[1]
-        t = circle_entry(px, pz, r.dx, r.dz, self.rad)
-        y = r.oy + t * r.dy
-        t = np.where((y >= self.y[0]) & (y <= self.y[1]), t, np.inf)
+        origin, direction = (r.ox, r.oy, r.oz), (r.dx, r.dy, r.dz)
+        a, b = self.cross
+        pa, pb = origin[a] - self.c[0], origin[b] - self.c[1]
+        t = circle_entry(pa, pb, direction[a], direction[b], self.rad)
+        s = origin[self.along] + t * direction[self.along]
+        t = np.where((s >= self.span[0]) & (s <= self.span[1]), t, np.inf)
         fin = np.where(np.isfinite(t), t, 0.0)
-        normal = ((px + fin * r.dx) / self.rad, 0.0, (pz + fin * r.dz) / self.rad)
-        hits.offer(idx, t, normal, reg(self.surf))
+        normal: list[np.ndarray | float] = [0.0, 0.0, 0.0]
+        normal[a], normal[b] = (pa + fin * direction[a]) / self.rad, (pb + fin * direction[b]) / self.rad
+        hits.offer(idx, t, (normal[0], normal[1], normal[2]), reg(self.surf))
 
 
 class CarCabin(Primitive):

@@ -6,8 +6,7 @@ from functools import lru_cache
 
 import numpy as np
 
-from pipeline.simulate.geometry import (Box, BuildingBlock, CarCabin, CrossCylinder, Primitive, TreeCrown,
-                                        VerticalCylinder)
+from pipeline.simulate.geometry import Box, BuildingBlock, CarCabin, Cylinder, Primitive, TreeCrown
 from pipeline.simulate.street import (FACADES, LAMP, PAINTS, POLE_METAL, POLE_WOOD, RAILING, ROAD_HALF, SIGNS, SLAB,
                                       TILE_LENGTH, TILE_STREAM, TRUNK, TYRE, UTIL_H, UTIL_Y, material, stream_rng, tint)
 
@@ -95,7 +94,7 @@ def add_cars(rng: np.random.Generator, x_lo: float, s: int, prims: list[Primitiv
                                 (0.33 * length, 0.47 * width, rng.uniform(0.45, 0.6)), paint))
             for xw in (pos + 0.8, pos + length - 0.8):
                 for yw in (yc - width / 2 + 0.02, yc + width / 2 - 0.24):
-                    prims.append(CrossCylinder(side, xw, 0.32, 0.32, yw, yw + 0.22, TYRE))
+                    prims.append(Cylinder(side, 1, (xw, 0.32), 0.32, yw, yw + 0.22, TYRE))
             pos += length + rng.uniform(0.8, 3.0)
         else:
             pos += rng.uniform(5.0, 7.0)
@@ -122,8 +121,8 @@ def add_street_light(rng: np.random.Generator, side: int, s: int, x: float, prim
     """Metal pole with an arm over the road and a lamp head."""
     y, height, arm = s * 7.45, rng.uniform(7.0, 9.0), rng.uniform(1.5, 2.5)
     ye = y - s * arm
-    prims.append(VerticalCylinder(side, x, y, 0.1, -0.3, height, POLE_METAL))
-    prims.append(CrossCylinder(side, x, height - 0.25, 0.05, min(y, ye), max(y, ye), POLE_METAL))
+    prims.append(Cylinder(side, 2, (x, y), 0.1, -0.3, height, POLE_METAL))
+    prims.append(Cylinder(side, 1, (x, height - 0.25), 0.05, min(y, ye), max(y, ye), POLE_METAL))
     prims.append(Box(side, (x - 0.15, ye - 0.3, height - 0.45),
                       (x + 0.15, ye + 0.3, height - 0.25), LAMP))
 
@@ -131,7 +130,7 @@ def add_street_light(rng: np.random.Generator, side: int, s: int, x: float, prim
 def add_sign(rng: np.random.Generator, side: int, s: int, x: float, prims: list[Primitive]) -> None:
     """Thin post with a retro-reflective plate facing the traffic."""
     y, height = s * 7.4, rng.uniform(2.8, 3.5)
-    prims.append(VerticalCylinder(side, x, y, 0.04, -0.3, height, POLE_METAL))
+    prims.append(Cylinder(side, 2, (x, y), 0.04, -0.3, height, POLE_METAL))
     plate = material(1, 6, 0.95, SIGNS[int(rng.integers(len(SIGNS)))], part=3)
     prims.append(Box(side, (x - 0.06, y - 0.35, height - 0.7), (x - 0.04, y + 0.35, height),
                       plate))
@@ -143,7 +142,7 @@ def add_tree(rng: np.random.Generator, side: int, x: float, y: float, prims: lis
     radius = rng.uniform(1.8, 3.2)
     cz = rng.uniform(2.3, 3.5) + radius
     trunk_r = rng.uniform(0.12, 0.25)
-    prims.append(VerticalCylinder(side, x, y, trunk_r, -0.3, cz, TRUNK))
+    prims.append(Cylinder(side, 2, (x, y), trunk_r, -0.3, cz, TRUNK))
     n = int(rng.integers(4, 7))
     spread = np.array([0.35, 0.35, 0.25]) * radius
     centres = np.array([x, y, cz]) + rng.normal(0, 1, (n, 3)) * spread
@@ -156,7 +155,7 @@ def add_tree(rng: np.random.Generator, side: int, x: float, y: float, prims: lis
 def add_utility_pole(x_lo: float, prims: list[Primitive]) -> float:
     """The wooden pole and cross-arm of the utility line in the middle of the tile; its x."""
     xp = x_lo + 0.5 * TILE_LENGTH
-    prims.append(VerticalCylinder(1, xp, UTIL_Y, 0.15, -0.3, UTIL_H + 1.0, POLE_WOOD))
+    prims.append(Cylinder(1, 2, (xp, UTIL_Y), 0.15, -0.3, UTIL_H + 1.0, POLE_WOOD))
     prims.append(Box(1, (xp - 0.05, UTIL_Y - 0.9, UTIL_H - 0.12),
                       (xp + 0.05, UTIL_Y + 0.9, UTIL_H), POLE_WOOD))
     return xp
