@@ -35,7 +35,8 @@ from quality import DEFAULT_DATA, load_scan, save_small, xyz_of  # noqa: E402
 from model import Tile  # noqa: E402
 from model.baselines import fps_simplify, random_simplify  # noqa: E402
 from model.detail import predicted_fill_loss  # noqa: E402
-from model.geometry import morton_order, point_features  # noqa: E402
+from model.geometry import point_features  # noqa: E402
+from model.rules import morton_order  # noqa: E402
 from model.metrics import nearest, quality  # noqa: E402
 from model.rules import kept_count  # noqa: E402
 from model.selection import FillLoss  # noqa: E402

@@ -5,7 +5,7 @@ import fpsample
 import numpy as np
 
 from model.geometry import curvature, knn, local_eigenvalues
-from model.rules import kept_count
+from model.rules import kept_count, spread_order
 from model.selection import Selection, Tile, topped_up
 
 FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core
@@ -89,8 +89,10 @@ def voxel_simplify(tile: Tile, budget: int, slack: float = VOXEL_COUNT_SLACK) ->
     voxel count just meets the budget (at most `slack` over it); voxels are aligned to the scan origin so
     tiles share one grid.
 
-    Representatives come in seeded random order and are trimmed to the budget; if even the finest
-    grid gives too few (duplicate points), the rest of the core tops the count up in random order.
+    Representatives come in a progressive order (model.selection.spread_order, its start seeded), so the
+    extra ones trimmed to the budget, and any prefix a run or `--levels` keeps, are spread over the tile;
+    if even the finest grid gives too few (duplicate points), the rest of the core tops the count up in
+    random order.
     """
     budget = min(budget, tile.core_count)
     core = np.flatnonzero(tile.core)
@@ -100,7 +102,8 @@ def voxel_simplify(tile: Tile, budget: int, slack: float = VOXEL_COUNT_SLACK) ->
     cell = _cell_for_budget(points, budget, slack)
     reps = core[_voxel_representatives(points, cell)]
     rng = np.random.default_rng(tile.seed)
-    return Selection.of(tile, topped_up(rng.permutation(reps), core, budget, rng))
+    order = reps[spread_order(tile.xyz[reps], int(rng.integers(len(reps))))]
+    return Selection.of(tile, topped_up(order, core, budget, rng))
 
 
 def _voxel_keys(points: np.ndarray, cell: float, mins: np.ndarray, maxs: np.ndarray) -> np.ndarray:

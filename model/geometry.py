@@ -12,6 +12,8 @@ from typing import Iterator
 import numpy as np
 from pykdtree.kdtree import KDTree
 
+from model.rules import morton_order
+
 CHUNK_POINTS = 200_000  # points per batch of the metrics' queries (model/metrics.py, model/sdm.py)
 QUERY_POINTS = 32_768  # points per kd-tree query: its float64 distances and indices are temporaries
 FRAME_POINTS = 8_192  # rows per batch of (m, k) gathers, covariances and eigen solves (~15 (m, 3, 3) float64 temporaries): 32k cost 26 MB more at the same speed
@@ -31,24 +33,6 @@ class Neighbours:
     def k(self) -> int:
         """Neighbours per point (the requested k, clipped to the point count)."""
         return self.indices.shape[1]
-
-
-def _spread_bits(values: np.ndarray) -> np.ndarray:
-    """Put bit i of each 21-bit integer at bit 3i, for interleaving three coordinates."""
-    v = values.astype(np.uint64) & np.uint64(0x1FFFFF)
-    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
-                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
-        v = (v | v << np.uint64(shift)) & np.uint64(mask)
-    return v
-
-
-def morton_order(xyz: np.ndarray) -> np.ndarray:
-    """Indices sorting points along a Z-order curve over their bounding cube (2**21 steps per axis)."""
-    low = xyz.min(axis=0)
-    span = max(float((xyz.max(axis=0) - low).max()), 1e-300)
-    steps = ((xyz - low) * ((2**21 - 1) / span)).astype(np.uint64)
-    code = _spread_bits(steps[:, 0]) | _spread_bits(steps[:, 1]) << np.uint64(1) | _spread_bits(steps[:, 2]) << np.uint64(2)
-    return np.argsort(code, kind="stable")
 
 
 def knn(xyz: np.ndarray, k: int = 16) -> Neighbours:

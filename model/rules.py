@@ -1,6 +1,7 @@
-"""Rules the whole project shares, written once: how many points a ratio keeps, and how coordinates sit on
-a LAS grid (integers times scale plus offset). model, tiling and pipeline all import this module; it
-imports nothing of theirs."""
+"""Rules the whole project shares, written once: how many points a ratio keeps, how coordinates sit on a
+LAS grid (integers times scale plus offset), and the orders that make any prefix of a selection spread
+out (a Z-order curve, bit-reversed rank). model, tiling and pipeline all import this module; it imports
+nothing of theirs (tiling imports nothing else of model)."""
 from __future__ import annotations
 
 import numpy as np
@@ -20,3 +21,47 @@ def grid_xyz(records: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> np
 def grid_ints(xyz: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """(n, 3) float64 integers of the grid steps nearest to (n, 3) coordinates (before any int32 check)."""
     return np.rint((xyz - offsets) / scales)
+
+
+def _spread_bits(values: np.ndarray) -> np.ndarray:
+    """Put bit i of each 21-bit integer at bit 3i, for interleaving three coordinates."""
+    v = values.astype(np.uint64) & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        v = (v | v << np.uint64(shift)) & np.uint64(mask)
+    return v
+
+
+def morton_order(xyz: np.ndarray) -> np.ndarray:
+    """Indices sorting points along a Z-order curve over their bounding cube (2**21 steps per axis)."""
+    low = xyz.min(axis=0)
+    span = max(float((xyz.max(axis=0) - low).max()), 1e-300)
+    steps = ((xyz - low) * ((2**21 - 1) / span)).astype(np.uint64)
+    code = _spread_bits(steps[:, 0]) | _spread_bits(steps[:, 1]) << np.uint64(1) | _spread_bits(steps[:, 2]) << np.uint64(2)
+    return np.argsort(code, kind="stable")
+
+
+def radical_inverse_order(count: int) -> np.ndarray:
+    """A permutation of range(count) by bit-reversed index: every prefix is spread evenly over the range."""
+    if count <= 1:
+        return np.arange(count, dtype=np.int64)
+    bits = int(np.ceil(np.log2(count)))
+    index = np.arange(count, dtype=np.uint64)
+    reversed_bits = np.zeros(count, dtype=np.uint64)
+    for bit in range(bits):
+        reversed_bits |= ((index >> np.uint64(bit)) & np.uint64(1)) << np.uint64(bits - 1 - bit)
+    return np.argsort(reversed_bits, kind="stable")
+
+
+def interleaved(first: np.ndarray, second: np.ndarray) -> np.ndarray:
+    """Two priority orders merged by relative rank (i / len), so any prefix holds each in proportion."""
+    rank = np.concatenate([np.arange(len(first)) / max(len(first), 1), np.arange(len(second)) / max(len(second), 1)])
+    return np.concatenate([first, second])[np.argsort(rank, kind="stable")]
+
+
+def spread_order(xyz: np.ndarray, offset: int = 0) -> np.ndarray:
+    """(n,) a progressive order of (n, 3) points: along a Z-order curve (started `offset` points in, so a
+    seed can vary it) by bit-reversed rank, so any prefix is spread over them."""
+    if len(xyz) == 0:
+        return np.empty(0, dtype=np.int64)
+    return np.roll(morton_order(xyz), -offset)[radical_inverse_order(len(xyz))]

@@ -6,7 +6,7 @@ from functools import cached_property
 
 import numpy as np
 
-from model.geometry import morton_order
+from model.rules import morton_order
 
 
 @dataclass(frozen=True)

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 
 from model.geometry import local_features
 from model.metrics import nearest
+from model.rules import interleaved, radical_inverse_order
 from model.selection import FillLoss, Selection, Tile, topped_up
 
 COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
@@ -217,21 +218,3 @@ def nearest_distance(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
     tree = KDTree(np.ascontiguousarray(points, dtype=np.float64))
     distance, _ = tree.query(np.ascontiguousarray(queries, dtype=np.float64), k=1)
     return distance
-
-
-def radical_inverse_order(count: int) -> np.ndarray:
-    """A permutation of range(count) by bit-reversed index: every prefix is spread evenly over the range."""
-    if count <= 1:
-        return np.arange(count, dtype=np.int64)
-    bits = int(np.ceil(np.log2(count)))
-    index = np.arange(count, dtype=np.uint64)
-    reversed_bits = np.zeros(count, dtype=np.uint64)
-    for bit in range(bits):
-        reversed_bits |= ((index >> np.uint64(bit)) & np.uint64(1)) << np.uint64(bits - 1 - bit)
-    return np.argsort(reversed_bits, kind="stable")
-
-
-def interleaved(first: np.ndarray, second: np.ndarray) -> np.ndarray:
-    """Two priority orders merged by relative rank (i / len), so any prefix holds each in proportion."""
-    rank = np.concatenate([np.arange(len(first)) / max(len(first), 1), np.arange(len(second)) / max(len(second), 1)])
-    return np.concatenate([first, second])[np.argsort(rank, kind="stable")]

@@ -63,9 +63,7 @@ def test_moving_the_tile_keeps_the_picks(name, tile):
     np.testing.assert_array_equal(method(tile, 400).indices, method(moved, 400).indices)
 
 
-@pytest.mark.parametrize("name", [pytest.param(name, marks=pytest.mark.xfail(
-    strict=True, reason="voxel keeps its representatives in random order: a prefix is a random subset"))
-    if name == "voxel" else name for name in METHODS])
+@pytest.mark.parametrize("name", METHODS)
 def test_a_prefix_is_as_good_as_a_coarser_selection(name, tile):
     """A run keeps the first `budget` of `budget + reserve` picks, and `--levels` the first picks of each
     tile: the first 60 of 600 cover the core within 1.25x of what 60 picks of their own cover."""

@@ -4,7 +4,8 @@ import pytest
 
 from model import geometry
 from model.geometry import (bandwidth, curvature, knn, local_eigenvalues, local_features, local_frames, mean_curvature,
-                            morton_order, point_features, roughness)
+                            point_features, roughness)
+from model.rules import morton_order
 
 
 def plane(n: int = 3_000, noise: float = 0.0, seed: int = 0) -> np.ndarray:

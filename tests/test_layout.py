@@ -1,6 +1,6 @@
 """The code's layout: imports point down the data flow (model < tiling < pipeline's foundation < io <
-engine and simulate < apps < the API), no module imports itself back through others (not even under
-TYPE_CHECKING or inside a function), and mesh mode runs without Dask."""
+engine and simulate < apps < the API), tiling takes only model.rules from model, no module imports itself
+back through others (not even under TYPE_CHECKING or inside a function), and mesh mode runs without Dask."""
 from __future__ import annotations
 
 import ast
@@ -63,6 +63,14 @@ def test_imports_point_down_the_data_flow():
             if LAYERS[target_layer] > LAYERS[source_layer] or (source_layer, target_layer) in APART:
                 upward.append(f"{name} ({source_layer}) imports {target} ({target_layer})")
     assert not upward, "\n".join(upward)
+
+
+def test_tiling_takes_only_the_shared_rules_from_model():
+    """tiling receives simplifiers as callables; of model it shares only the rules (model.rules)."""
+    modules = project_modules()
+    reached = {(name, target) for name, path in modules.items() if layer(name) == "tiling"
+               for target in imported(path, modules) if layer(target) == "model" and target != "model.rules"}
+    assert not reached, sorted(reached)
 
 
 def test_no_import_cycle():

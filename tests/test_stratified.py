@@ -4,8 +4,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 from model import Tile, get_simplifier
+from model.rules import radical_inverse_order
 from model.selection import FillContext, FillLoss
-from model.stratified import hole_cover, radical_inverse_order, systematic_picks, typical_spacing
+from model.stratified import hole_cover, systematic_picks, typical_spacing
 
 
 def dense_beside_sparse(seed: int = 0) -> tuple[Tile, np.ndarray]:

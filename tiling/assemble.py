@@ -12,9 +12,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from model.geometry import morton_order
-from model.rules import grid_ints, grid_xyz
-from model.stratified import interleaved, radical_inverse_order
+from model.rules import grid_ints, grid_xyz, interleaved, spread_order
 from tiling.plan import TilePlan
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
 
@@ -81,13 +79,6 @@ def level_parts(plan: TilePlan, results: dict[int, str], budgets: np.ndarray, le
         records = records[order]
         yield TilePart(tile_id, covering(plan.bounds(tile_id), grid_xyz(records, scales, offsets)), records)
 
-
-def spread_order(xyz: np.ndarray) -> np.ndarray:
-    """(n,) a progressive order of points kept whole: along a Z-order curve by bit-reversed rank, so any
-    prefix is spread over them (what a viewer loading coarse levels of a COPC file sees)."""
-    if len(xyz) == 0:
-        return np.empty(0, dtype=np.int64)
-    return morton_order(xyz)[radical_inverse_order(len(xyz))]
 
 
 def covering(rect: tuple[float, float, float, float], xyz: np.ndarray) -> tuple[float, float, float, float]:
