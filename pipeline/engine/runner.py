@@ -28,7 +28,7 @@ from pipeline.io.copc_output import COPC_SPILL_COPIES, copc_point_format
 from pipeline.io.crs import crs_label, length_unit, unit_note
 from pipeline.io.output_guard import check_output
 from pipeline.io.scan import Scan
-from pipeline.io.writers import COPC_SUFFIX, OUTPUT_SUFFIXES
+from pipeline.io.writers import COPC_SUFFIX, OUTPUT_KINDS, output_kind
 from pipeline.progress import Progress
 from tiling.store import TileStore
 
@@ -98,8 +98,8 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     outputs = written_paths(output, config.levels)
     kept = kept_count(config.ratio, scan.point_count)
     for path in outputs:
-        check_output(path, [Path(p) for p in inputs], overwrite, OUTPUT_SUFFIXES)
-        if path.name.lower().endswith(COPC_SUFFIX):  # refused now, not after the whole simplification
+        check_output(path, [Path(p) for p in inputs], overwrite, OUTPUT_KINDS)
+        if output_kind(path) == COPC_SUFFIX:  # refused now, not after the whole simplification
             try:
                 records = copc_point_format(scan.point_format).size * kept
             except PipelineError as exc:
@@ -150,11 +150,10 @@ def written_paths(output: Path, levels: Sequence[float]) -> list[Path]:
 
 def level_output(output: Path, ratio: float) -> Path:
     """Where `--levels` writes one level: `name.r0.1.laz` beside `name.laz` (`name.r0.1.copc.laz`, ...)."""
-    name = output.name
-    for suffix in (".copc.laz", *OUTPUT_SUFFIXES):
-        if name.lower().endswith(suffix):
-            return output.with_name(f"{name[:-len(suffix)]}.r{ratio:g}{name[-len(suffix):]}")
-    return output.with_name(f"{name}.r{ratio:g}")
+    name, kind = output.name, output_kind(output)
+    if kind is None:
+        return output.with_name(f"{name}.r{ratio:g}")
+    return output.with_name(f"{name[:-len(kind)]}.r{ratio:g}{name[-len(kind):]}")
 
 
 def interrupted(exc: KeyboardInterrupt, work: WorkDir, written: Path | None) -> Interrupted:

@@ -15,8 +15,15 @@ from pipeline.io.provenance import stamped_header
 from pipeline.io.zarr_output import write_zarr
 from tiling.assemble import TilePart
 
-OUTPUT_SUFFIXES = (".las", ".laz", ".zarr")  # .copc.laz is a .laz suffix
 COPC_SUFFIX = ".copc.laz"
+OUTPUT_KINDS = (COPC_SUFFIX, ".las", ".laz", ".zarr")  # what an output's name may end in (.copc.laz before .laz)
+
+
+def output_kind(path: Path) -> str | None:
+    """The format an output's name ends in (one of OUTPUT_KINDS, in any case), or None: the one rule for
+    choosing a writer, checking an output name and naming `--levels` files."""
+    name = path.name.lower()
+    return next((kind for kind in OUTPUT_KINDS if name.endswith(kind)), None)
 
 
 def write_output(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[TilePart], meta: OutputMeta) -> int:
@@ -24,18 +31,18 @@ def write_output(path: Path, header: laspy.LasHeader, total: int, parts: Iterabl
 
     A write that fails (a full disk) leaves nothing under either name and is reported against `path`.
     """
-    suffix = path.suffix.lower()
-    if suffix not in OUTPUT_SUFFIXES:
-        raise PipelineError(f"{path}: unsupported output type {suffix or '(none)'} "
-                            "(use .las, .laz, .copc.laz or .zarr)")
+    kind = output_kind(path)
+    if kind is None:
+        raise PipelineError(f"{path}: unsupported output type {path.suffix.lower() or '(none)'} "
+                            f"(use {', '.join(OUTPUT_KINDS)})")
     try:
         with atomic_output(path) as temporary:
-            if suffix == ".zarr":
+            if kind == ".zarr":
                 written = write_zarr(temporary, header, total, parts, meta)
-            elif path.name.lower().endswith(COPC_SUFFIX):
+            elif kind == COPC_SUFFIX:
                 written = write_copc(temporary, stamped_header(header, meta), total, parts, meta)
             else:
-                written = _write_las(temporary, stamped_header(header, meta), parts, compress=suffix == ".laz")
+                written = _write_las(temporary, stamped_header(header, meta), parts, compress=kind == ".laz")
     except OSError as exc:
         raise file_system_error(exc, path) from None
     return written
