@@ -30,7 +30,8 @@ def get_simplifier(method: str, **parameters: Any) -> Method:
         default = REGISTERED[method]
     except KeyError:
         raise ValueError(f"unknown method {method!r}; known: {', '.join(METHODS)}") from None
-    known = {f.name: type(getattr(default, f.name)) for f in fields(default)}
+    known = {f.name: Path if isinstance(getattr(default, f.name), Path) else type(getattr(default, f.name))
+             for f in fields(default)}
     unknown = sorted(set(parameters) - set(known))
     if unknown:
         takes = ", ".join(known) or "no parameters"

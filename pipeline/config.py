@@ -6,7 +6,7 @@ import re
 import tomllib
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import configs
 from model.methods import Method
@@ -115,6 +115,21 @@ def parse_list(text: str | None, option: str, kind: type) -> tuple | None:
     except ValueError:
         raise PipelineError(f"{option} takes comma-separated {'whole numbers' if kind is int else 'numbers'}, "
                             f"got {text!r}") from None
+
+
+def parse_parameters(texts: Sequence[str]) -> dict[str, Any]:
+    """`--param NAME=VALUE` flags as a dict, each value read as TOML (0.05, true, "a b") or else kept as text
+    (a path); one line if one has no `=`."""
+    parameters = {}
+    for text in texts:
+        name, equals, value = text.partition("=")
+        if not equals or not name.strip():
+            raise PipelineError(f"--param takes NAME=VALUE, got {text!r}")
+        try:
+            parameters[name.strip()] = tomllib.loads(f"value = {value.strip()}")["value"]
+        except tomllib.TOMLDecodeError:
+            parameters[name.strip()] = value.strip()
+    return parameters
 
 
 def parse_size(text: str, option: str = "--memory-limit") -> int:

@@ -78,6 +78,18 @@ def test_a_parameter_reaches_the_workers(tmp_path):
     assert "method_parameters" not in read_provenance(default.header)["settings"]
 
 
+def test_cli_param_flags_reach_the_output(tmp_path):
+    scan, out = tmp_path / "scan.las", tmp_path / "out.las"
+    write_patch(scan, 26917, 1.0, n=4_000)
+    subprocess.run([sys.executable, "-m", "pipeline.apps.cli", "run", str(scan), "-r", "0.1", "-m", "voxel", "-p",
+                    "slack=0.25", "-o", str(out), "-q"], check=True)
+    assert read_provenance(laspy.open(out).header)["settings"]["method_parameters"] == {"slack": 0.25}
+    for bad, said in (("slack", "--param takes NAME=VALUE, got 'slack'"), ("slack=true", "must be a number")):
+        result = subprocess.run([sys.executable, "-m", "pipeline.apps.cli", "run", str(scan), "-r", "0.1", "-m",
+                                 "voxel", "-p", bad, "-o", str(tmp_path / "bad.las")], capture_output=True, text=True)
+        assert result.returncode == 2 and said in result.stderr and result.stderr.count("\n") == 1
+
+
 def test_the_cli_names_a_bad_parameter_in_one_line(tmp_path):
     scan, config = tmp_path / "scan.las", tmp_path / "run.toml"
     write_patch(scan, 26917, 1.0, n=2_000)

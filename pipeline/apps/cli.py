@@ -15,7 +15,7 @@ from pipeline.apps.cli_extras import demo_command, train_command, train_detail_c
 from pipeline.apps.scan_summary import format_summary, summarize
 from pipeline.apps.scoring import DEFAULT_SAMPLE
 from pipeline.apps.visual.report_region import COLORS, parse_region
-from pipeline.config import METHODS, build_config, parse_list
+from pipeline.config import METHODS, build_config, parse_list, parse_parameters
 from pipeline.engine.stop_guard import STOP_GRACE_S
 from pipeline.errors import Interrupted, PipelineError, Terminated, file_system_error, signal_exit_code
 from pipeline.progress import Progress
@@ -86,6 +86,8 @@ def cli() -> None:
 @click.option("--output", "-o", type=click.Path(path_type=Path), default=None,
               help="Output file: .las, .laz, .copc.laz (COPC 1.0) or .zarr. [default: ./<input>.simplified.laz]")
 @click.option("--method", "-m", type=click.Choice(METHODS), default=None, help="Simplifier. [default: learned]")
+@click.option("--param", "-p", "params", multiple=True, metavar="NAME=VALUE",
+              help="A parameter of the method, e.g. -m voxel -p slack=0.05 (repeatable; README: Method parameters).")
 @click.option("--tile-size", type=float, default=None, help="Nominal tile edge in metres. [default: 50]")
 @click.option("--overlap", type=float, default=None, help="Halo width around each tile in metres (into a split crowded cell, at most 64 of its point spacings). [default: 2]")
 @click.option("--max-tile-points", type=int, default=None, help="Split tiles with more core points. [default: 200000]")
@@ -109,7 +111,7 @@ def cli() -> None:
 @click.option("--mesh", is_flag=True, help="INPUT is a triangle mesh (.off/.obj/.ply): simplify its vertices and "
               "re-triangulate them by ball pivoting; output .ply/.obj/.off.")
 def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | None, keep_class: str | None,
-                thin_class: str | None, output: Path | None, method: str | None,
+                thin_class: str | None, output: Path | None, method: str | None, params: tuple[str, ...],
                 tile_size: float | None, overlap: float | None, max_tile_points: int | None,
                 seam_tolerance: float | None, workers: int | None, memory_limit: str | None, config: str | None,
                 seed: int | None, scratch: Path | None, scheduler: str | None, overwrite: bool,
@@ -120,7 +122,8 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
     try:
         if ratio is None and levels is None:
             raise PipelineError("give --ratio (the fraction of points to keep) or --levels")
-        settings = build_config(config, ratio=ratio, method=method, tile_size=tile_size, overlap=overlap,
+        settings = build_config(config, ratio=ratio, method=method, method_parameters=parse_parameters(params),
+                                tile_size=tile_size, overlap=overlap,
                                 max_tile_points=max_tile_points, seam_tolerance=seam_tolerance, workers=workers,
                                 memory_limit=memory_limit, seed=seed, allow_geographic=allow_geographic or None,
                                 levels=parse_list(levels, "--levels", float),
