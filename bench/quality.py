@@ -280,10 +280,11 @@ def markdown(rows: list[Row], labels: list[dict]) -> str:
                   "to the nearest kept point (m).", "",
                   "| ratio | label | points | method | share | p99 | p99 / FPS (tiled) |", "|" + " --- |" * 7]
         for row in labels:
-            fps = next(x for x in labels if x["ratio"] == row["ratio"] and x["label"] == row["label"]
-                       and x["method"] == "fps")
+            fps = next((x for x in labels if x["ratio"] == row["ratio"] and x["label"] == row["label"]
+                        and x["method"] == "fps"), None)
+            to_fps = f"{row['p99'] / max(fps['p99'], 1e-12):.2f}" if fps else "—"  # fps not among --methods
             lines.append(f"| {row['ratio']:g} | {row['label']} | {row['points']:,} | {row['method']} | "
-                         f"{row['share']:.2f} | {row['p99']:.3f} | {row['p99'] / max(fps['p99'], 1e-12):.2f} |")
+                         f"{row['share']:.2f} | {row['p99']:.3f} | {to_fps} |")
     return "\n".join(lines) + "\n"
 
 
