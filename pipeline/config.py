@@ -5,6 +5,7 @@ import math
 import re
 import tomllib
 from dataclasses import dataclass, fields, replace
+from functools import cached_property
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -41,9 +42,9 @@ class RunConfig:
     thin_classes: tuple[int, ...] = ()  # the only codes thinned; every other point is kept whole
     method_parameters: tuple[tuple[str, Any], ...] = ()  # (name, value) replacing the method's defaults
 
-    @property
+    @cached_property
     def simplifier(self) -> Method:
-        """The method with its parameters, as the run's tiles call it."""
+        """The method with its parameters, as the run's tiles call it (made once per settings object)."""
         return get_simplifier(self.method, **dict(self.method_parameters))
 
     def in_unit(self, metres_per_unit: float) -> "RunConfig":
