@@ -157,12 +157,12 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
     if simplifier.spaces_evenly or isinstance(simplifier, Fill):
         surveys, sizes = survey_scan(client, plan, slices, work, config, target, progress)
         occupied = np.array([survey.occupied for survey in surveys])
-        if simplifier.spaces_evenly:  # tiles share out the points as one pass over the whole scan would
-            weights = coverage_weights(occupied, sizes, target)
-        else:  # saliency shared as one pass would; a point in every voxel of the hole radius, so every tile
-            weights, fill = scan_fill(surveys, occupied, sizes, target,  # keeps enough to cover its holes
-                                      simplifier.cover_spacings)
+        if isinstance(simplifier, Fill):  # saliency shared as one pass would; a point in every voxel of the
+            weights, fill = scan_fill(surveys, occupied, sizes, target,  # hole radius, so every tile keeps
+                                      simplifier.cover_spacings)  # enough to cover its holes
             floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)
+        else:  # spaced evenly: tiles share out the points as one pass over the whole scan would
+            weights = coverage_weights(occupied, sizes, target)
     budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights)
     return budgets, fill
 
