@@ -98,3 +98,17 @@ def test_the_cli_names_a_bad_parameter_in_one_line(tmp_path):
                              "-c", str(config), "-o", str(tmp_path / "out.las")], capture_output=True, text=True)
     assert result.returncode == 2 and result.stderr.count("\n") == 1
     assert "slack" in result.stderr and not (tmp_path / "out.las").exists()
+
+
+def test_batch_param_flags_reach_every_job_and_a_changed_one_reruns(tmp_path):
+    scans, out = tmp_path / "scans", tmp_path / "out"
+    scans.mkdir()
+    write_patch(scans / "a.las", 26917, 1.0, n=3_000)
+    command = [sys.executable, "-m", "pipeline.apps.cli", "batch", str(scans), "--out-dir", str(out), "-r", "0.1",
+               "-m", "voxel"]
+    said = [subprocess.run(command + ["-p", f"slack={slack}"], capture_output=True, text=True, check=True).stdout
+            for slack in (0.3, 0.3, 0.1)]
+    assert "1 done, 0 already done" in said[0] and "0 done, 1 already done" in said[1]
+    assert "1 done, 0 already done" in said[2]  # the work folder's and manifest's key read the parameters
+    assert read_provenance(laspy.open(out / "a.simplified.las").header)["settings"]["method_parameters"] == {
+        "slack": 0.1}

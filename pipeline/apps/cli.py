@@ -164,6 +164,7 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
               help="Output folder (required for a folder of scans; overrides out_dir of a job file).")
 @click.option("--ratio", "-r", type=float, default=None, help="Fraction kept, for every job (overrides the file).")
 @click.option("--method", "-m", type=click.Choice(METHODS), default=None, help="Simplifier for every job.")
+@click.option("--param", "-p", "params", multiple=True, metavar="NAME=VALUE", help="A method parameter for every job.")
 @click.option("--config", "-c", "config", default=None, help="Preset or TOML file for every job.")
 @click.option("--workers", "-w", type=int, default=None, help="Dask worker processes. [default: 2]")
 @click.option("--memory-limit", default=None, help="Memory limit per worker, e.g. 2GB. [default: 2GB]")
@@ -173,9 +174,9 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
               help="Batch manifest. [default: <out-dir>/batch-manifest.json, or <JOBS>.manifest.json]")
 @click.option("--overwrite", is_flag=True, help="Replace existing outputs the batch did not write itself.")
 @click.option("--log-json", is_flag=True, help="One JSON object per line on stdout, for cron and log collectors.")
-def batch_command(jobs: Path, out_dir: Path | None, ratio: float | None, method: str | None, config: str | None,
-                  workers: int | None, memory_limit: str | None, scheduler: str | None, scratch: Path | None,
-                  manifest: Path | None, overwrite: bool, log_json: bool) -> None:
+def batch_command(jobs: Path, out_dir: Path | None, ratio: float | None, method: str | None, params: tuple[str, ...],
+                  config: str | None, workers: int | None, memory_limit: str | None, scheduler: str | None,
+                  scratch: Path | None, manifest: Path | None, overwrite: bool, log_json: bool) -> None:
     """Run many scans: JOBS is a folder (each LAS/LAZ/PLY file is one scan) or a TOML job list.
 
     Finished jobs are skipped on a rerun; a failed job is recorded and the rest go on; the exit code
@@ -184,7 +185,9 @@ def batch_command(jobs: Path, out_dir: Path | None, ratio: float | None, method:
     from pipeline.apps.batch import Manifest, jobs_from_folder, jobs_from_toml, run_batch
 
     flags = {name: value for name, value in dict(ratio=ratio, method=method, config=config, workers=workers,
-                                                  memory_limit=memory_limit).items() if value is not None}
+                                                  memory_limit=memory_limit,
+                                                  method_parameters=parse_parameters(params) or None).items()
+             if value is not None}
     if jobs.is_dir():
         if out_dir is None:
             raise PipelineError(f"{jobs}: a folder of scans needs --out-dir")
