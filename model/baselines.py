@@ -89,7 +89,7 @@ def voxel_simplify(tile: Tile, budget: int, slack: float = VOXEL_COUNT_SLACK) ->
     voxel count just meets the budget (at most `slack` over it); voxels are aligned to the scan origin so
     tiles share one grid.
 
-    Representatives come in a progressive order (model.selection.spread_order, its start seeded), so the
+    Representatives come in a progressive order (model.rules.spread_order, its start seeded), so the
     extra ones trimmed to the budget, and any prefix a run or `--levels` keeps, are spread over the tile;
     if even the finest grid gives too few (duplicate points), the rest of the core tops the count up in
     random order.

@@ -62,7 +62,7 @@ class Fps(Method):
 @dataclass(frozen=True)
 class Voxel(Method):
     """The real point nearest each voxel centre, the cell searched so the voxels number at most `slack`
-    over the budget (the extra ones trimmed in random order)."""
+    over the budget (the extra ones trimmed last in a spread-out order)."""
 
     slack: float = VOXEL_COUNT_SLACK
     reads_halo: ClassVar[bool] = False
@@ -131,13 +131,13 @@ class Learned(Fill):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        weights_exist(self.weights)
+        object.__setattr__(self, "weights", checked_weights(self.weights))
 
     def fill_loss(self, tile: Tile, budget: int) -> FillLoss:
-        return predicted_fill_loss(tile, budget, Path(self.weights))
+        return predicted_fill_loss(tile, budget, self.weights)
 
     def trained_weights(self) -> Path | None:
-        return Path(self.weights)
+        return self.weights
 
 
 @dataclass(frozen=True)
@@ -150,29 +150,29 @@ class Paper(Method):
     refine: bool = False
 
     def __post_init__(self) -> None:
-        weights_exist(self.weights)
+        object.__setattr__(self, "weights", checked_weights(self.weights))
 
-    def __call__(self, tile: Tile, budget: int) -> Selection:
-        from model.learned import learned_simplify
+    def __call__(self, tile: Tile, budget: int, graph: np.ndarray | None = None) -> Selection:
+        from model.learned import learned_simplify  # torch: imported by this method only
 
-        return learned_simplify(tile, budget, Path(self.weights), refine=self.refine)
+        return learned_simplify(tile, budget, self.weights, graph=graph, refine=self.refine)
 
     def on_mesh(self, tile: Tile, budget: int, faces: np.ndarray) -> Selection:
-        from model.learned import learned_simplify
         from model.learning.network import GRAPH_NEIGHBOURS
         from model.meshes import mesh_graph
 
-        graph = mesh_graph(tile.xyz, faces, GRAPH_NEIGHBOURS)
-        return learned_simplify(tile, budget, Path(self.weights), graph=graph, refine=self.refine)
+        return self(tile, budget, mesh_graph(tile.xyz, faces, GRAPH_NEIGHBOURS))
 
     def trained_weights(self) -> Path | None:
-        return Path(self.weights)
+        return self.weights
 
     def keeps_positions(self) -> bool:
         return not self.refine
 
 
-def weights_exist(path: Path) -> None:
-    """A method's `weights` must name a file (checked when the method is made, not in its first tile)."""
+def checked_weights(path: Path | str) -> Path:
+    """A method's `weights` as a Path, which must name a file (checked when the method is made, not in its
+    first tile; a string becomes a Path, so equal settings make equal methods)."""
     if not Path(path).is_file():
         raise ValueError(f"parameter 'weights': no such file {str(path)!r}")
+    return Path(path)

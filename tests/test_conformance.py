@@ -25,10 +25,6 @@ def tile() -> Tile:
     return Tile(xyz - xyz.mean(axis=0), core, CENTRE, seed=11)
 
 
-def method_of(name: str) -> Method:
-    return REGISTERED[name]
-
-
 def assert_valid(tile: Tile, method: Method, budget: int) -> np.ndarray:
     """The selection's indices after checking the contract: `budget` distinct core points (fewer only if the
     core is smaller), and their own positions unless the method moves points."""
@@ -45,12 +41,12 @@ def assert_valid(tile: Tile, method: Method, budget: int) -> np.ndarray:
 @pytest.mark.parametrize("name", METHODS)
 def test_exact_budget_of_distinct_core_points(name, tile):
     for budget in (0, 1, 37, 600, tile.core_count, tile.core_count + 5):
-        assert_valid(tile, method_of(name), budget)
+        assert_valid(tile, REGISTERED[name], budget)
 
 
 @pytest.mark.parametrize("name", METHODS)
 def test_same_tile_and_seed_give_the_same_picks(name, tile):
-    method = method_of(name)
+    method = REGISTERED[name]
     np.testing.assert_array_equal(method(tile, 400).indices, method(tile, 400).indices)
 
 
@@ -59,7 +55,7 @@ def test_moving_the_tile_keeps_the_picks(name, tile):
     """A tile's points relative to another centre (the same absolute positions) give the same picks."""
     shift = np.array([3.0, -2.0, 1.0])
     moved = Tile(tile.xyz + shift, tile.core, tile.centre - shift, tile.seed)
-    method = method_of(name)
+    method = REGISTERED[name]
     np.testing.assert_array_equal(method(tile, 400).indices, method(moved, 400).indices)
 
 
@@ -67,7 +63,7 @@ def test_moving_the_tile_keeps_the_picks(name, tile):
 def test_a_prefix_is_as_good_as_a_coarser_selection(name, tile):
     """A run keeps the first `budget` of `budget + reserve` picks, and `--levels` the first picks of each
     tile: the first 60 of 600 cover the core within 1.25x of what 60 picks of their own cover."""
-    method = method_of(name)
+    method = REGISTERED[name]
     core = tile.xyz[tile.core]
     prefix = method(tile, 600).indices[:60]
     coarse = method(tile, 60).indices
@@ -81,7 +77,7 @@ def test_a_method_that_never_reads_the_halo_picks_the_same_without_it(name, tile
     """A run loads no halo for such a method: the picks must be those it makes with the halo there."""
     core = np.flatnonzero(tile.core)
     alone = Tile(tile.xyz[core], np.ones(len(core), dtype=bool), tile.centre, tile.seed)
-    method = method_of(name)
+    method = REGISTERED[name]
     np.testing.assert_array_equal(core[method(alone, 500).indices], method(tile, 500).indices)
 
 
@@ -93,7 +89,7 @@ def test_tiny_tiles_keep_exactly_their_core(name, n):
     xyz = np.random.default_rng(n).uniform(size=(n, 3))
     core = np.arange(n) < (n - 2 if n > 3 else n)
     tile = Tile(xyz, core, CENTRE, seed=2)
-    method = method_of(name)
+    method = REGISTERED[name]
     for budget in range(1, tile.core_count + 1):
         assert_valid(tile, method, budget)
     assert sorted(method(tile, tile.core_count).indices) == np.flatnonzero(core).tolist()
@@ -115,4 +111,4 @@ def degenerate_tiles() -> dict[str, Tile]:
 def test_degenerate_tiles(name, shape):
     tile = degenerate_tiles()[shape]
     for budget in (1, tile.core_count // 10, tile.core_count // 2, tile.core_count):
-        assert_valid(tile, method_of(name), budget)
+        assert_valid(tile, REGISTERED[name], budget)
