@@ -48,7 +48,7 @@ def test_parameters_from_a_config_table_the_api_and_an_object(tmp_path):
 def test_a_bad_parameter_is_one_line(tmp_path, text, message):
     path = tmp_path / "run.toml"
     path.write_text(text)
-    with pytest.raises(PipelineError, match=None) as caught:
+    with pytest.raises(PipelineError) as caught:
         build_config(str(path))
     assert message in str(caught.value) and "\n" not in str(caught.value)
 
