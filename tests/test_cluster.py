@@ -125,12 +125,15 @@ def test_costly_tasks_go_first_and_every_worker_holds_the_shared_values(schedule
     from pipeline.progress import Progress
 
     def shared_value_holders(item: int, shared: str) -> tuple[int, int]:
-        """The item, and how many workers hold the shared values as it starts (defined here: sent by value)."""
+        """The item, and how many workers hold this task's shared values as it starts (defined here: sent by
+        value). Only its own dependencies count: a previous test's released values may linger a moment."""
         from distributed import get_client
+        from distributed.worker import thread_state
 
         counts = get_client().run_on_scheduler(
-            lambda dask_scheduler: [len(task.who_has or ()) for key, task in dask_scheduler.tasks.items()
-                                    if str(key).startswith("_same-")])
+            lambda key, dask_scheduler: [len(dependency.who_has or ())
+                                         for dependency in dask_scheduler.tasks[key].dependencies],
+            thread_state.key)
         return item, min(counts)
 
     with Client(scheduler, timeout="60s") as client:
@@ -148,7 +151,9 @@ def test_costly_tasks_go_first_and_every_worker_holds_the_shared_values(schedule
                                     progress=Progress("off"), cost=lambda item: costs[item])
     assert submitted == [1, 3, 0, 2, 4, 5]
     assert [item for item, _ in results] == list(range(6))
-    assert all(holders == 2 for _, holders in results)
+    # the first window (two tasks per worker): later, Dask's memory manager may drop a replica no waiting
+    # task needs any more (ReduceReplicas), which is its job and not a fault of the run
+    assert all(results[item][1] == 2 for item in submitted[:4])
 
 
 def test_the_window_grows_when_a_worker_joins_mid_run(scheduler, monkeypatch):

@@ -74,6 +74,8 @@ def map_tasks(client: Client | Executor, function: Callable, items: Sequence[Any
         return submitted
 
     submitted = top_up(0)
+    if shared_futures:  # again, now that tasks wait on them: between the two, Dask's memory manager may have
+        client.replicate(shared_futures)  # dropped a copy no task needed yet (ReduceReplicas, every 2 s)
     with progress.phase(desc, len(items)) as phase:
         for future in running:
             try:
