@@ -26,6 +26,8 @@ class Method:
 
     reads_halo: ClassVar[bool] = True        # False: picks from the core alone, so a run loads no halo for it
     spaces_evenly: ClassVar[bool] = False    # True: tile budgets follow covered volume, not point counts
+    light_on_gil: ClassVar[bool] = False     # True: its work runs in compiled code that lets go of Python's GIL
+                                             # (numpy, fpsample), so threads of one process lose little to each other
 
     def __call__(self, tile: Tile, budget: int) -> Selection:
         """`budget` core points of `tile` (fewer only if it has fewer), most important first."""
@@ -54,6 +56,7 @@ class Fps(Method):
 
     reads_halo: ClassVar[bool] = False
     spaces_evenly: ClassVar[bool] = True
+    light_on_gil: ClassVar[bool] = True
 
     def __call__(self, tile: Tile, budget: int) -> Selection:
         return fps_simplify(tile, budget)
@@ -67,6 +70,7 @@ class Voxel(Method):
     slack: float = VOXEL_COUNT_SLACK
     reads_halo: ClassVar[bool] = False
     spaces_evenly: ClassVar[bool] = True
+    light_on_gil: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         if not 0 <= self.slack <= 1:
@@ -81,6 +85,7 @@ class Random(Method):
     """A seeded uniform sample of the core."""
 
     reads_halo: ClassVar[bool] = False
+    light_on_gil: ClassVar[bool] = True
 
     def __call__(self, tile: Tile, budget: int) -> Selection:
         return random_simplify(tile, budget)

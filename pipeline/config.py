@@ -34,7 +34,7 @@ class RunConfig:
     memory_limit: str = "2GB"
     cache_memory: str = "32MB"  # each process's cache of stored row chunks (tiles re-read their neighbours')
     chunk_points: int = 500_000  # points per bucketing piece: one piece per worker in memory at a time
-    in_process_points: int = 1_000_000  # scans up to this size run on threads of this process: see README
+    in_process_points: int = 3_000_000  # scans up to this size run on threads of this process: see README
     seed: int = 0
     allow_geographic: bool = False  # run on coordinates in degrees (tile sizes and distances become degrees)
     levels: tuple[float, ...] = ()  # nested outputs at these ratios from one simplification (the first is `ratio`)

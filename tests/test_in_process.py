@@ -97,13 +97,24 @@ def test_the_chunk_cache_shared_by_threads_keeps_its_budget_and_its_rows():
 
 def test_more_threads_take_fewer_points_in_process():
     """`in_process_points` holds at 2 threads; with more, threads lose more to processes (the GIL), so the
-    cluster's start pays off sooner: 667k points at 4 threads, 571k at 8; 0 always starts a cluster."""
+    cluster's start pays off sooner: 667k points at 4 threads, 571k at 8; 0 always starts a cluster. A
+    method light on the GIL runs three times as many points on threads."""
     limit = 1_000_000
     assert runs_in_process(limit, limit, 1) and runs_in_process(limit, limit, 2)
     assert not runs_in_process(limit + 1, limit, 2)
     assert runs_in_process(666_000, limit, 4) and not runs_in_process(667_000, limit, 4)
     assert runs_in_process(571_000, limit, 8) and not runs_in_process(572_000, limit, 8)
-    assert not runs_in_process(1, 0, 2)
+    assert not runs_in_process(1, 0, 2) and not runs_in_process(1, 0, 2, light_on_gil=True)
+    assert runs_in_process(3 * limit, limit, 2, light_on_gil=True)
+    assert not runs_in_process(3 * limit + 1, limit, 2, light_on_gil=True)
+
+
+def test_the_methods_light_on_the_gil_are_the_compiled_ones():
+    """fps (fpsample), voxel and random run in numpy and compiled code; the fill's hole cover and the
+    paper's network hold the GIL far longer, so they keep the default limit."""
+    from model.registry import REGISTERED
+
+    assert {name for name, method in REGISTERED.items() if method.light_on_gil} == {"fps", "voxel", "random"}
 
 
 def test_the_in_process_run_gives_back_its_thread_settings():

@@ -84,8 +84,8 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     Lengths in `config` are metres, converted to the scan's horizontal unit (its CRS's: foot, US survey
     foot, ...); `note` hears that once, or that metres were assumed for lack of a CRS.
     Runs on `client` if given, else on the cluster at `scheduler`, else in this process for a scan of at
-    most `in_process_points` points (the same tasks on `workers` threads: starting a cluster costs more
-    than it saves), else on a fresh local cluster.
+    most `in_process_points` points (pipeline.engine.threads.runs_in_process: the same tasks on `workers`
+    threads, where starting a cluster costs more than it saves), else on a fresh local cluster.
     Finished pieces and tiles are kept in a work folder until the output is in place, so the same
     command re-run after a crash or a kill resumes; any other failure names that folder. With
     `stop_grace_s` (the CLI's), an interrupted run whose cluster has not closed within that many seconds
@@ -122,7 +122,8 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     written = None
     guard = StopGuard(stop_grace_s)
     try:
-        here = runs_in_process(scan.point_count, config.in_process_points, local_workers(config.workers))
+        here = runs_in_process(scan.point_count, config.in_process_points, local_workers(config.workers),
+                               config.simplifier.light_on_gil)
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here) as active:
             try:
                 written, tiles, resumed, kept_whole = simplify_scan(scan, outputs, config, settings, work, active, clock,

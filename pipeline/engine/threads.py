@@ -24,12 +24,19 @@ def local_workers(requested: int) -> int:
     return max(1, min(requested, available_cores()))
 
 
-def runs_in_process(points: int, limit: int, threads: int) -> bool:
+LIGHT_ON_GIL_SCALE = 3  # how many times more points a method light on the GIL runs in-process: with 2 workers
+# threads and a cluster tied at about 10M points for `fps` (street, 54.6 s and 54.4 s) and about 4M for `learned`
+# (street, 39.3 and 37.7 s); `voxel` still won on threads at 10M (36.6 s against 43.4)
+
+
+def runs_in_process(points: int, limit: int, threads: int, light_on_gil: bool = False) -> bool:
     """Whether a scan of `points` runs on `threads` threads of this process rather than on a local cluster:
-    up to `limit` points at 2 threads, where it was measured, fewer with more. A task holds the GIL for a
-    share of its time (bench/gil_share.py), so threads lose to processes in proportion to 1 - 1/threads
-    (Amdahl's law), while the cluster's start and close stay the same."""
-    return points <= limit * 0.5 / (1 - 1 / max(threads, 2))
+    up to `limit` points at 2 threads, where it was measured, fewer with more; LIGHT_ON_GIL_SCALE times more
+    for a method whose work lets go of Python's GIL. A task holds the GIL for a share of its time
+    (bench/gil_share.py), so threads lose to processes in proportion to 1 - 1/threads (Amdahl's law),
+    while the cluster's start and close stay the same."""
+    scale = LIGHT_ON_GIL_SCALE if light_on_gil else 1
+    return points <= limit * scale * 0.5 / (1 - 1 / max(threads, 2))
 
 
 @contextmanager
