@@ -3,6 +3,8 @@ Errors print one line and exit non-zero."""
 from __future__ import annotations
 
 import json
+import logging
+import os
 import signal
 import sys
 from datetime import datetime, timezone
@@ -301,8 +303,22 @@ for extra in (demo_command, train_command, train_detail_command):
 
 
 def main() -> None:
-    """Console-script entry point."""
-    cli(prog_name="pipeline")
+    """Console-script entry point. Once the command has ended (its outputs closed, its streams flushed),
+    the process exits without Python's teardown of its ~1,100 modules: 0.25 s, a tenth of a small run."""
+    try:
+        cli(prog_name="pipeline")
+        code = 0
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 0 if exc.code is None else 1
+        if isinstance(exc.code, str):
+            click.echo(exc.code, err=True)
+    logging.shutdown()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except OSError:  # a reader that closed the pipe (`pipeline info | head -1`) wants no more
+            pass
+    os._exit(code)
 
 
 if __name__ == "__main__":

@@ -97,7 +97,7 @@ def load_tile(store_path: str, slices: tuple[Slice, ...], cache_bytes: int, plan
               overlap: float, run_seed: int, rule: ClassRule) -> tuple[Tile, np.ndarray, np.ndarray]:
     """A tile's core and halo points, centred on the core's mean, their raw records (same order), and the
     indices of the core points `rule` keeps whole: they stay in the tile as context, outside its core."""
-    store = TileStore.open(Path(store_path))
+    store = TileStore.reader(Path(store_path))
     scales, offsets = stored_scaling(store)
 
     def seen(points: StoredPoints) -> np.ndarray:
