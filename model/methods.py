@@ -41,9 +41,16 @@ class Method:
         """Every parameter and its value, JSON-able (paths as strings)."""
         return {f.name: str(v) if isinstance(v := getattr(self, f.name), Path) else v for f in fields(self)}
 
+    def __post_init__(self) -> None:
+        """A `weights` field (a file of trained weights) becomes a checked Path once, when the method is made,
+        so equal settings give equal methods."""
+        if isinstance(getattr(self, "weights", None), (str, Path)):
+            object.__setattr__(self, "weights", checked_weights(getattr(self, "weights")))
+
     def trained_weights(self) -> Path | None:
-        """The file of trained weights the method runs on (an output's provenance records its digest)."""
-        return None
+        """The file of trained weights the method runs on, its `weights` field if it has one (an output's
+        provenance records its digest)."""
+        return getattr(self, "weights", None)
 
     def keeps_positions(self) -> bool:
         """Whether the selection's xyz are the picked points' own (False: the method moves them)."""
@@ -73,6 +80,7 @@ class Voxel(Method):
     light_on_gil: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if not 0 <= self.slack <= 1:
             raise ValueError(f"parameter 'slack' must be a share in [0, 1], got {self.slack!r}")
 
@@ -108,6 +116,7 @@ class Fill(Method):
     cover_spacings: float = COVER_SPACINGS
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if not (np.isfinite(self.cover_spacings) and self.cover_spacings > 0):
             raise ValueError(f"parameter 'cover_spacings' must be a positive number, got {self.cover_spacings!r}")
 
@@ -134,15 +143,8 @@ class Learned(Fill):
 
     weights: Path = DETAIL_WEIGHTS
 
-    def __post_init__(self) -> None:
-        super().__post_init__()
-        object.__setattr__(self, "weights", checked_weights(self.weights))
-
     def fill_loss(self, tile: Tile, budget: int) -> FillLoss:
         return predicted_fill_loss(tile, budget, self.weights)
-
-    def trained_weights(self) -> Path | None:
-        return self.weights
 
 
 @dataclass(frozen=True)
@@ -154,9 +156,6 @@ class Paper(Method):
     weights: Path = PAPER_WEIGHTS
     refine: bool = False
 
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "weights", checked_weights(self.weights))
-
     def __call__(self, tile: Tile, budget: int, graph: np.ndarray | None = None) -> Selection:
         from model.learned import learned_simplify  # torch: imported by this method only
 
@@ -167,9 +166,6 @@ class Paper(Method):
         from model.meshes import mesh_graph
 
         return self(tile, budget, mesh_graph(tile.xyz, faces, GRAPH_NEIGHBOURS))
-
-    def trained_weights(self) -> Path | None:
-        return self.weights
 
     def keeps_positions(self) -> bool:
         return not self.refine

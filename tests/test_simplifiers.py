@@ -1,6 +1,6 @@
 """What the classic simplifiers promise beyond the contract every method meets (tests/test_conformance.py):
-nested prefixes for fps and random, a seed that changes the picks, fps spreading better than random, and
-voxel's one point per voxel."""
+nested prefixes for fps and random, a seed that changes the picks, fps spreading better than random and
+keeping every far cluster of a tiny tile, and voxel's one point per voxel."""
 import numpy as np
 import pytest
 
@@ -44,6 +44,16 @@ def test_fps_spreads_points_better_than_random():
         kept = get_simplifier(method)(tile, 500).xyz
         gaps[method] = cKDTree(kept).query(interior)[0].max()  # covering radius
     assert gaps["fps"] < 0.6 * gaps["random"]
+
+
+@pytest.mark.parametrize("centre", [np.zeros(3), np.array([500_000.0, 4_000_000.0, 100.0])])
+def test_fps_keeps_one_point_of_each_far_cluster_on_a_tiny_tile(centre):
+    """Three tight pairs of points 10 m apart: three fps picks are one of each pair, whatever the seed and
+    wherever the tile lies (which points, not only how many: no cluster vanishes while another keeps two)."""
+    xyz = np.array([[0, 0, 0], [0.01, 0, 0], [10, 0, 0], [10, 0.01, 0], [0, 10, 0], [0, 10, 0.01]])
+    for seed in range(5):
+        tile = Tile(xyz - xyz.mean(axis=0), np.ones(len(xyz), dtype=bool), centre, seed)
+        assert sorted(get_simplifier("fps")(tile, 3).indices // 2) == [0, 1, 2]
 
 
 def test_voxel_keeps_one_point_per_voxel_nearest_its_centre():

@@ -80,7 +80,6 @@ def level_parts(plan: TilePlan, results: dict[int, str], budgets: np.ndarray, le
         yield TilePart(tile_id, covering(plan.bounds(tile_id), grid_xyz(records, scales, offsets)), records)
 
 
-
 def covering(rect: tuple[float, float, float, float], xyz: np.ndarray) -> tuple[float, float, float, float]:
     """The tile's core rectangle grown to hold its kept points: a refined point may move slightly outside."""
     if len(xyz) == 0:

@@ -63,10 +63,11 @@ def bucket_scan(client: Client | Executor, scan: Scan, pieces: list[Piece], work
     whole = plan.per_tile(protected, sum(c.protected for c in copies.values()) if copies else None)  # plan.cells == cells
     boxes = cell_boxes([b.cells for b in buckets], grid.shape[1])
     slices: list[list[Slice]] = []
+    overlap = seen_overlap(config)
     for tile_id in range(len(plan.tiles)):  # only the pieces a halo meets (not every piece for every tile)
-        i0, i1, j0, j1 = plan.halo_cell_rect(tile_id, seen_overlap(config))
+        i0, i1, j0, j1 = plan.halo_cell_rect(tile_id, overlap)
         meets = np.flatnonzero((boxes[:, 0] < i1) & (boxes[:, 1] > i0) & (boxes[:, 2] < j1) & (boxes[:, 3] > j0))
-        slices.append([s for k in meets for s in halo_slices(plan, tile_id, seen_overlap(config), pieces[k].number,
+        slices.append([s for k in meets for s in halo_slices(plan, tile_id, overlap, pieces[k].number,
                                                              buckets[k].cells, buckets[k].starts,
                                                              copies.get(pieces[k].number))])
     return plan, slices, whole, np.sum([b.classes for b in buckets], axis=0)
@@ -113,9 +114,9 @@ def survey_scan(client: Client | Executor, plan: TilePlan, slices: list[list[Sli
     cell_area = plan.grid.cell ** 2
     spacing = float(np.sqrt(sum(t.occupied for t in plan.tiles) * cell_area / max(target, 1)))
     sizes = tuple(float(s) for s in spacing * COVERAGE_LEVELS)
+    overlap, cache_bytes, rule = seen_overlap(config), chunk_cache_bytes(config), ClassRule.of(config)
     jobs = [SurveyJob(str(work.store_path), str(work.survey_path(tile_id)), tile_id, tuple(slices[tile_id]),
-                      seen_overlap(config), chunk_cache_bytes(config), sizes, config.simplifier, config.ratio, config.seed,
-                      ClassRule.of(config))
+                      overlap, cache_bytes, sizes, config.simplifier, config.ratio, config.seed, rule)
             for tile_id in range(len(plan.tiles))]
     pending = [job for job in jobs if not Path(job.survey_path).is_file()]
     fresh = dict(zip((job.tile_id for job in pending),
@@ -172,6 +173,7 @@ def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets:
     """One job per tile that keeps a point (a budget, or points kept whole), in tile order: neighbours
     share pieces, so caches stay warm."""
     jobs = []
+    overlap, cache_bytes, rule = seen_overlap(config), chunk_cache_bytes(config), ClassRule.of(config)
     for tile_id, tile in enumerate(plan.tiles):
         budget = int(budgets[tile_id])
         if budget == 0 and whole[tile_id] == 0:
@@ -181,8 +183,8 @@ def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets:
                                                  detail_scale=float(fill.detail_scales[tile_id]),
                                                  cover_radius=fill.cover_radius)
         jobs.append(TileJob(str(work.store_path), str(work.tile_path(tile_id)), tile_id, tuple(slices[tile_id]),
-                            seen_overlap(config), chunk_cache_bytes(config), budget, reserve, config.simplifier,
-                            config.seed, **surveyed, rule=ClassRule.of(config)))
+                            overlap, cache_bytes, budget, reserve, config.simplifier, config.seed, **surveyed,
+                            rule=rule))
     return jobs
 
 

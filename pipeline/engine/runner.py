@@ -114,7 +114,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     config = config.in_unit(unit.metres)
     if note is not None and (said := unit_note(unit, crs_label(scan.header))):
         note(said)
-    if kept_count(config.ratio, scan.point_count) == 0:
+    if kept == 0:
         raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {scan.point_count} points")
     for path in outputs:
         remove_stale_temporaries(path)
