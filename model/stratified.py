@@ -23,7 +23,6 @@ from typing import Callable
 
 import numpy as np
 from pykdtree.kdtree import KDTree
-from scipy.spatial import cKDTree
 
 from model.geometry import local_features
 from model.metrics import nearest
@@ -190,6 +189,8 @@ def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius
     if len(far) == 0:
         return far.astype(np.int64)
     gap = distance[distance > radius]
+    from scipy.spatial import cKDTree  # here, not at the top: importing scipy costs 0.3 s a run without a cover
+
     points = np.ascontiguousarray(xyz[far], dtype=np.float64)
     tree = cKDTree(points)
     largest = [(-g, i) for i, g in enumerate(gap.tolist())]  # a max-heap of gaps, refreshed lazily (gaps only shrink)

@@ -7,7 +7,7 @@ import tiling.store as store_module
 from tiling.bucket import (bucket_by_cell, bucket_by_sub_cell, cell_boxes, cells_within, halo_slices, row_ranges,
                            without_cells)
 from tiling.plan import SUB_CELLS, DensityGrid, crowded_cells, plan_tiles, summed_cells
-from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
+from tiling.stitch import SeamBand, band_mask, close_pairs, first_accepted, resolve_seams
 from tiling.store import Slice, TileStore
 
 RECORD = np.dtype([("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("intensity", "<u2")])
@@ -173,6 +173,23 @@ def test_seam_pass_removes_cross_tile_pairs_and_keeps_counts():
     assert len(rejections[1]) == 30 and 0 not in rejections
     distances, _ = cKDTree(kept[0]).query(kept[1])
     assert distances.min() >= tolerance
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_close_pairs_are_scipys_pairs_with_ties_at_the_tolerance(seed):
+    """Coordinates on a LAS-like grid put many pairs exactly one tolerance apart (and duplicates many
+    deep): each is in or out as scipy's query_pairs decides, so seams keep the same points."""
+    rng = np.random.default_rng(seed)
+    scale, origin, tolerance = [(0.01, 687_000.0, 0.01), (0.001, 4_810_000.0, 0.003), (0.125, 1024.0, 0.25),
+                                (0.00025, 120.0, 0.0305)][seed % 4]  # 0.125 m steps: exact distances
+    steps = rng.integers(0, round(0.4 / scale) if scale < 0.1 else 16, size=(3000, 3))
+    steps = np.concatenate([steps, np.repeat(steps[:5], 40, axis=0)])
+    xyz = origin + steps * scale
+    ours = np.sort(close_pairs(xyz, tolerance), axis=1)
+    scipys = np.sort(cKDTree(xyz).query_pairs(tolerance, output_type="ndarray"), axis=1)
+    assert len(scipys) > 3000
+    assert {tuple(p) for p in ours.tolist()} == {tuple(p) for p in scipys.tolist()} and len(ours) == len(scipys)
+    assert len(close_pairs(xyz[:1], tolerance)) == 0
 
 
 def test_a_halo_that_misses_a_pieces_box_has_no_rows_in_it():

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.spatial import cKDTree
+from pykdtree.kdtree import KDTree
 
 
 @dataclass(frozen=True)
@@ -27,6 +27,33 @@ def band_mask(xyz: np.ndarray, rect: Sequence[float], tolerance: float) -> np.nd
     x, y = xyz[:, 0], xyz[:, 1]
     inner = np.minimum.reduce([x - rect[0], rect[2] - x, y - rect[1], rect[3] - y])
     return inner < tolerance
+
+
+def close_pairs(xyz: np.ndarray, tolerance: float) -> np.ndarray:
+    """Every pair (i, j), i < j, of the (N, 3) points at most `tolerance` apart, shape (P, 2): what scipy's
+    cKDTree.query_pairs returns, with the same rule for a pair exactly at the tolerance (squared distance
+    summed x, y, z, compared with tolerance squared), but from pykdtree's bounded kNN, so a run of fps,
+    voxel or random never imports scipy (0.3 s). Rows whose k-th neighbour is still within reach ask
+    again with twice the k, so a cluster of duplicates costs only its own rows."""
+    points = np.ascontiguousarray(xyz, dtype=np.float64)
+    count = len(points)
+    if count < 2:
+        return np.empty((0, 2), dtype=np.int64)
+    tree = KDTree(points)
+    reach = float(np.nextafter(tolerance, np.inf)) * (1 + 1e-9)  # a margin; the exact rule is applied below
+    rows, k, found = np.arange(count), min(2, count), []
+    while len(rows):
+        neighbours = tree.query(points[rows], k=k, distance_upper_bound=reach)[1].reshape(len(rows), k)
+        complete = (neighbours[:, -1] >= count) | (k == count)
+        first = np.repeat(rows[complete], k)
+        second = neighbours[complete].ravel().astype(np.int64)
+        ordered = (second < count) & (first < second)
+        found.append(np.stack([first[ordered], second[ordered]], axis=1))
+        rows, k = rows[~complete], min(2 * k, count)
+    pairs = np.concatenate(found)
+    offset = points[pairs[:, 0]] - points[pairs[:, 1]]
+    squared = offset[:, 0] * offset[:, 0] + offset[:, 1] * offset[:, 1] + offset[:, 2] * offset[:, 2]
+    return pairs[squared <= tolerance * tolerance]
 
 
 def first_accepted(candidates: int, budget: int, rejected: np.ndarray) -> np.ndarray:
@@ -48,7 +75,7 @@ def resolve_seams(bands: Sequence[SeamBand], candidate_counts: np.ndarray, budge
     xyz = np.concatenate([b.xyz for b in bands])
     tile = np.concatenate([np.full(len(b.ranks), b.tile_id) for b in bands])
     rank = np.concatenate([b.ranks for b in bands])
-    pairs = cKDTree(xyz).query_pairs(tolerance, output_type="ndarray")
+    pairs = close_pairs(xyz, tolerance)
     pairs = pairs[tile[pairs[:, 0]] != tile[pairs[:, 1]]]
     # orient each pair from the later tile (which decides) to the earlier one (already decided)
     later = np.where(tile[pairs[:, 0]] > tile[pairs[:, 1]], pairs[:, 0], pairs[:, 1])
