@@ -34,7 +34,7 @@ def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path, standp
     the whole cell."""
     pieces, xyz = scan_pieces(30_000 + standpoint, 7_000, standpoint=standpoint)
     grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=20)
-    store = TileStore.create(tmp_path / "t.zarr", RECORD, {})
+    store = TileStore.create(tmp_path / "tiles", RECORD, {})
     index = []
     cell_parts, count_parts = [], []
     for number, (first, records, points) in enumerate(pieces):
@@ -54,7 +54,7 @@ def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path, standp
     plan = plan_tiles(grid, cells, counts, 1_500, sum(c.counts for c in copies.values()) if len(crowded) else None)
     assert counts.sum() == len(xyz) and sum(t.count for t in plan.tiles) == len(xyz)
     assert all(t.count <= 1_500 for t in plan.tiles) and (len(plan.split_cells) > 0) == (standpoint > 0)
-    reopened = TileStore.open(tmp_path / "t.zarr")
+    reopened = TileStore.open(tmp_path / "tiles")
     seen_core = np.zeros(len(xyz), dtype=int)
     overlap = 1.5
     in_split = np.isin(grid.cell_of(xyz), plan.split_cells)
@@ -104,7 +104,7 @@ def test_bucketed_pieces_give_every_tile_its_core_and_full_halo(tmp_path, standp
 def test_chunk_cache_returns_the_same_rows_within_its_budget(tmp_path, monkeypatch):
     monkeypatch.setattr(store_module, "ROW_CHUNK", 1_000)  # slices then span several chunks
     monkeypatch.setattr(store_module, "CHUNKS", store_module.ChunkCache())
-    store = TileStore.create(tmp_path / "t.zarr", RECORD, {})
+    store = TileStore.create(tmp_path / "tiles", RECORD, {})
     pieces, _ = scan_pieces(12_000, 6_000)
     for number, (first, records, _) in enumerate(pieces):
         store.write_piece(number, store_module.encode_rows(records, np.arange(first, first + len(records))))
@@ -173,6 +173,24 @@ def test_seam_pass_removes_cross_tile_pairs_and_keeps_counts():
     assert len(rejections[1]) == 30 and 0 not in rejections
     distances, _ = cKDTree(kept[0]).query(kept[1])
     assert distances.min() >= tolerance
+
+
+def test_a_store_made_again_is_empty_and_a_cut_piece_is_an_error_not_short_rows(tmp_path):
+    """A new run's store at a leftover path starts empty; a piece file cut short (a damaged scratch disk)
+    fails the read with its name, and never yields fewer rows than the slice asked for."""
+    pieces, _ = scan_pieces(3_000, 3_000)
+    first, records, _ = pieces[0]
+    rows = store_module.encode_rows(records, np.arange(first, first + len(records)))
+    TileStore.create(tmp_path / "tiles", RECORD, {"scales": [0.001] * 3}).write_piece(0, rows)
+    store = TileStore.open(tmp_path / "tiles")
+    assert store.attrs == {"scales": [0.001] * 3} and store.record_dtype == RECORD
+    np.testing.assert_array_equal(store.load([Slice(0, 100, 2_000)]).records, records[100:2_000])
+    piece = tmp_path / "tiles" / store_module.array_name(0)
+    piece.write_bytes(piece.read_bytes()[:-1])
+    with pytest.raises(OSError, match="p0.rows.*ends first"):
+        store.load([Slice(0, 100, 3_000)])
+    TileStore.create(tmp_path / "tiles", RECORD, {})
+    assert not piece.exists() and TileStore.exists(tmp_path / "tiles")
 
 
 @pytest.mark.parametrize("seed", range(8))

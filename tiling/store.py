@@ -1,12 +1,15 @@
-"""The temporary on-disk store (zarr v3) of the bucketed scan: one uncompressed 2-D uint8 array per piece.
+"""The temporary on-disk store of the bucketed scan: a folder with one raw file of rows per piece.
 
 A row is the raw LAS record bytes, then the point's global index (int64, little endian). Rows are
 sorted by grid cell, so a tile's core+halo is a few row ranges of each piece; ranges are read in
-piece order, which keeps a tile's points in file order whatever worker wrote them.
+piece order, which keeps a tile's points in file order whatever worker wrote them. A range is one seek
+and one read: a zarr array here cost 0.25 s of import a run and about a millisecond a read, for rows no
+other tool ever opens. `store.json` holds the record layout and what the creator stored beside it.
 """
 from __future__ import annotations
 
 import json
+import os
 import threading
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -15,10 +18,10 @@ from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
 import numpy as np
-import zarr
 
 ROW_CHUNK = 65536
 TAIL = 8  # the global index after each record
+META = "store.json"
 
 
 @dataclass(frozen=True)
@@ -49,15 +52,15 @@ class Slice:
 
 
 def array_name(piece: int, crowded: bool = False) -> str:
-    """Piece n's rows are array `pn`; its rows in crowded cells, sorted by sub-cell, are `cn`."""
-    return f"{'c' if crowded else 'p'}{piece}"
+    """Piece n's rows are file `pn.rows`; its rows in crowded cells, sorted by sub-cell, are `cn.rows`."""
+    return f"{'c' if crowded else 'p'}{piece}.rows"
 
 
 class ChunkCache:
     """Row chunks of stored pieces kept in memory up to a byte budget, least recently used dropped first.
 
     A tile needs a dozen row ranges of each piece it touches, and the next tile (tiles run in grid
-    order) mostly the same chunks; zarr costs about a millisecond per read. Caching chunks, not whole
+    order) mostly the same chunks; a read is a system call or two. Caching chunks, not whole
     pieces, reads only what tiles touch and keeps the budget small whatever the scan's size.
     """
 
@@ -122,61 +125,73 @@ def _dtype(descr: str) -> np.dtype:
 
 
 class TileStore:
-    """Writer (one array per piece) and reader (a tile from its slices) of the bucketed scan."""
+    """Writer (one file of rows per piece) and reader (a tile from its slices) of the bucketed scan."""
 
-    def __init__(self, path: Path, record_dtype: np.dtype, group: zarr.Group) -> None:
+    def __init__(self, path: Path, record_dtype: np.dtype, attrs: dict) -> None:
         self.path = path
         self.record_dtype = record_dtype
-        self._group = group
-        self._arrays: dict[str, zarr.Array] = {}
+        self.row_bytes = record_dtype.itemsize + TAIL
+        self._attrs = attrs
 
     @classmethod
     def create(cls, path: Path, record_dtype: np.dtype, attrs: dict) -> "TileStore":
         """A new, empty store at path (replacing any leftover one)."""
-        group = zarr.open_group(str(path), mode="w", zarr_format=3)
-        group.attrs.update({**attrs, "record_dtype": _descr(record_dtype)})
-        return cls(path, record_dtype, group)
+        path.mkdir(parents=True, exist_ok=True)
+        for stale in path.iterdir():
+            stale.unlink()
+        meta = {**attrs, "record_dtype": _descr(record_dtype)}
+        _replace(path / META, json.dumps(meta).encode())
+        return cls(path, record_dtype, attrs)
+
+    @classmethod
+    def exists(cls, path: Path) -> bool:
+        """Whether a store was created at path (a resumed run keeps the pieces stored in it)."""
+        return (path / META).is_file()
 
     @classmethod
     def open(cls, path: Path) -> "TileStore":
         """An existing store, for writing pieces or reading tiles (in workers)."""
-        group = zarr.open_group(str(path), mode="r+", zarr_format=3)
-        return cls(path, _dtype(group.attrs["record_dtype"]), group)
+        meta = json.loads((path / META).read_text())
+        return cls(path, _dtype(meta.pop("record_dtype")), meta)
 
     @classmethod
     def reader(cls, path: Path) -> "TileStore":
-        """An existing store for reading tiles, opened once per process: a task per tile opened it afresh,
-        4 ms of autzen's 17 ms tiles. Keyed by its root metadata file's identity, so a store made again at
-        the same path (a new run) is opened again."""
-        meta = (path / "zarr.json").stat()
+        """An existing store for reading tiles, opened once per process. Keyed by its metadata file's
+        identity, so a store made again at the same path (a new run) is opened again."""
+        meta = (path / META).stat()
         return _opened_reader(str(path), meta.st_ino, meta.st_mtime_ns)
 
     @property
     def attrs(self) -> dict:
         """What the creator stored beside the rows (scales, offsets, ...)."""
-        return dict(self._group.attrs)
+        return dict(self._attrs)
 
     def write_piece(self, piece: int, rows: np.ndarray, crowded: bool = False) -> None:
-        """Store one bucketed piece's rows, or (`crowded`) its copy of the rows in crowded cells
-        (uncompressed: the store is short-lived and I/O is not the cost)."""
-        array = self._group.create_array(array_name(piece, crowded), shape=rows.shape, dtype="uint8", overwrite=True,
-                                         chunks=(min(ROW_CHUNK, max(len(rows), 1)), rows.shape[1]),
-                                         compressors=None)
-        array[:] = rows
+        """Store one bucketed piece's (n, row_bytes) uint8 rows, or (`crowded`) its copy of the rows in
+        crowded cells; written beside and renamed, so a piece file is whole or absent."""
+        _replace(self.path / array_name(piece, crowded), np.ascontiguousarray(rows, dtype=np.uint8).data)
 
-    def _array(self, name: str) -> zarr.Array:
-        if name not in self._arrays:
-            self._arrays[name] = self._group[name]
-        return self._arrays[name]
+    def _read(self, name: str, start: int, stop: int) -> np.ndarray:
+        """Rows [start, stop) of a stored file, (stop - start, row_bytes) uint8."""
+        rows = np.empty((stop - start, self.row_bytes), dtype=np.uint8)
+        with open(self.path / name, "rb") as file:
+            file.seek(start * self.row_bytes)
+            got = file.readinto(memoryview(rows).cast("B"))
+        if got != rows.nbytes:
+            raise OSError(f"{self.path / name}: rows {start}..{stop} asked, the file ends first (scratch damaged?)")
+        return rows
 
     def _cached_rows(self, s: Slice, cache_bytes: int) -> Iterator[np.ndarray]:
         """The slice's rows, chunk by chunk through the process's chunk cache."""
-        array = self._array(s.array)
         for chunk in range(s.start // ROW_CHUNK, (s.stop - 1) // ROW_CHUNK + 1):
             first = chunk * ROW_CHUNK
             rows = CHUNKS.get((str(self.path), s.array, chunk), cache_bytes,
-                              lambda: array[first:first + ROW_CHUNK])
+                              lambda: self._read(s.array, first, min(first + ROW_CHUNK, self._rows(s.array))))
             yield rows[max(s.start - first, 0):s.stop - first]
+
+    def _rows(self, name: str) -> int:
+        """Rows in a stored file."""
+        return (self.path / name).stat().st_size // self.row_bytes
 
     def stream(self, slices: Sequence[Slice], cache_bytes: int = 0) -> Iterator[StoredPoints]:
         """The rows of the given slices in the order given, a row chunk (at most ROW_CHUNK rows) at a time:
@@ -188,7 +203,7 @@ class TileStore:
                 yield from map(self._points, self._cached_rows(s, cache_bytes))
             else:
                 for first in range(s.start, s.stop, ROW_CHUNK):
-                    yield self._points(self._array(s.array)[first:min(first + ROW_CHUNK, s.stop)])
+                    yield self._points(self._read(s.array, first, min(first + ROW_CHUNK, s.stop)))
 
     def load(self, slices: Sequence[Slice], cache_bytes: int = 0,
              keep: Callable[[StoredPoints], np.ndarray] | None = None) -> StoredPoints:
@@ -197,7 +212,7 @@ class TileStore:
         memory is what is kept, not what the slices span."""
         parts = list(self.stream(slices, cache_bytes) if keep is None else self._kept(slices, cache_bytes, keep))
         if not parts:
-            return self._points(np.empty((0, self.record_dtype.itemsize + TAIL), np.uint8))
+            return self._points(np.empty((0, self.row_bytes), np.uint8))
         return joined(parts)
 
     def _kept(self, slices: Sequence[Slice], cache_bytes: int,
@@ -220,6 +235,17 @@ class TileStore:
         records = np.ascontiguousarray(rows[:, :-TAIL]).view(self.record_dtype).ravel()
         index = np.ascontiguousarray(rows[:, -TAIL:]).view("<i8").ravel()
         return StoredPoints(records, index)
+
+
+def _replace(path: Path, data: memoryview | bytes) -> None:
+    """Write `data` to path through a temporary beside it (through the file object: a full disk says so)."""
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.{threading.get_ident()}.tmp")
+    try:
+        with open(temporary, "wb") as file:
+            file.write(data)
+        os.replace(temporary, path)
+    finally:
+        temporary.unlink(missing_ok=True)
 
 
 @lru_cache(maxsize=4)

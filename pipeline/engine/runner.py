@@ -180,7 +180,7 @@ def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: 
     """Bucket, plan, simplify every tile on the cluster, stitch and write each level; return points written
     per output, tiles, tiles found finished by an earlier attempt, and points kept whole."""
     clock.lap("start cluster")
-    if not (work.store_path / "zarr.json").is_file():  # a resumed run keeps the pieces it stored
+    if not TileStore.exists(work.store_path):  # a resumed run keeps the pieces it stored
         TileStore.create(work.store_path, scan.dtype, {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
     rule = ClassRule.of(config)
     plan, slices, whole, classes = bucket_scan(client, scan, scan.pieces(config.chunk_points), work, config, rule,

@@ -82,7 +82,7 @@ class WorkDir:
     @property
     def store_path(self) -> Path:
         """The bucketed points (tiling.store.TileStore)."""
-        return self.path / "tiles.zarr"
+        return self.path / "tiles"
 
     def piece_path(self, number: int) -> Path:
         """Where a bucketed piece's occupied cells and row starts are kept once its rows are stored."""

@@ -12,7 +12,6 @@ from pipeline.io.atomic import atomic_output
 from pipeline.io.copc_output import write_copc
 from pipeline.io.output_meta import OutputMeta
 from pipeline.io.provenance import stamped_header
-from pipeline.io.zarr_output import write_zarr
 from tiling.assemble import TilePart
 
 COPC_SUFFIX = ".copc.laz"
@@ -38,6 +37,8 @@ def write_output(path: Path, header: laspy.LasHeader, total: int, parts: Iterabl
     try:
         with atomic_output(path) as temporary:
             if kind == ".zarr":
+                from pipeline.io.zarr_output import write_zarr  # here: zarr's import is 0.25 s a LAS run never needs
+
                 written = write_zarr(temporary, header, total, parts, meta)
             elif kind == COPC_SUFFIX:
                 written = write_copc(temporary, stamped_header(header, meta), total, parts, meta)

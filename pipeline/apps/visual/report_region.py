@@ -8,12 +8,11 @@ from typing import Iterator
 
 import laspy
 import numpy as np
-import zarr
 
 from pipeline.apps.visual.density_map import xy_bounds
 from pipeline.engine.classes import classification
 from pipeline.errors import PipelineError
-from pipeline.io.points import CHUNK, covering_grid, point_count, xyz_chunks
+from pipeline.io.points import CHUNK, covering_grid, point_count, xyz_chunks, zarr_group
 from pipeline.io.scan import Scan
 
 COLORS = ("elevation", "classification", "rgb")
@@ -80,7 +79,7 @@ def colour_chunks(path: Path, color: str) -> Iterator[tuple[np.ndarray, np.ndarr
     if color == "elevation":
         yield from ((xyz, xyz[:, 2]) for xyz in xyz_chunks(path))
     elif path.suffix.lower() == ".zarr":
-        group = zarr.open_group(str(path), mode="r")
+        group = zarr_group(path)
         names = ["classification"] if color == "classification" else list(RGB)
         if any(name not in group for name in names):
             raise PipelineError(f"{path}: has no {color} to colour by")

@@ -8,11 +8,11 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
-import zarr
 
 from pipeline.apps.scan_summary import human_size
 from pipeline.apps.scoring import METRIC_COLUMNS, Reference, Score, metric_cells
 from pipeline.apps.visual.density_map import DensityMap
+from pipeline.io.points import zarr_group
 from pipeline.io.provenance import read_provenance
 from pipeline.io.scan import open_source
 
@@ -36,7 +36,7 @@ def size_on_disk(path: Path) -> int:
 def provenance_of(path: Path) -> dict[str, Any] | None:
     """The run record an output carries (LAS/LAZ VLR or zarr attribute `provenance`), or None."""
     if path.suffix.lower() == ".zarr":
-        record = zarr.open_group(str(path), mode="r").attrs.get("provenance")
+        record = zarr_group(path).attrs.get("provenance")
         return json.loads(record) if isinstance(record, str) else record
     return read_provenance(open_source(path).header)
 
