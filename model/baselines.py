@@ -4,6 +4,7 @@ from __future__ import annotations
 import fpsample
 import numpy as np
 
+from model.arrays import column_max, column_min
 from model.geometry import curvature, knn, local_eigenvalues
 from model.rules import kept_count, spread_order
 from model.selection import Selection, Tile, topped_up
@@ -121,7 +122,7 @@ def _cell_for_budget(points: np.ndarray, budget: int, slack: float) -> float:
     The count falls roughly as a power of the cell size, so each step interpolates in log-log space
     between a cell known to give enough voxels and one known to give too few (a few steps, not 20).
     """
-    mins, maxs = points.min(axis=0), points.max(axis=0)
+    mins, maxs = column_min(points), column_max(points)
     extent = float((maxs - mins).max())
     finest = max(extent / 2**20, 1e-6)  # keeps keys within int64 and below the coordinates' precision
 
@@ -154,7 +155,7 @@ def _distinct_count(keys: np.ndarray) -> int:
 
 def _voxel_representatives(points: np.ndarray, cell: float) -> np.ndarray:
     """Index of the point nearest its voxel centre, one per occupied voxel, in voxel-key order."""
-    keys = _voxel_keys(points, cell, points.min(axis=0), points.max(axis=0))
+    keys = _voxel_keys(points, cell, column_min(points), column_max(points))
     centres = (np.floor(points / cell) + 0.5) * cell
     distance = np.einsum("ij,ij->i", points - centres, points - centres)
     order = np.lexsort((distance, keys))

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from model.arrays import column_max, column_min
+
 
 def kept_count(ratio: float, total: int) -> int:
     """round(ratio * N) with halves rounded up (not Python's banker's rounding), at most N."""
@@ -34,8 +36,8 @@ def _spread_bits(values: np.ndarray) -> np.ndarray:
 
 def morton_order(xyz: np.ndarray) -> np.ndarray:
     """Indices sorting points along a Z-order curve over their bounding cube (2**21 steps per axis)."""
-    low = xyz.min(axis=0)
-    span = max(float((xyz.max(axis=0) - low).max()), 1e-300)
+    low = column_min(xyz)
+    span = max(float((column_max(xyz) - low).max()), 1e-300)
     steps = ((xyz - low) * ((2**21 - 1) / span)).astype(np.uint64)
     code = _spread_bits(steps[:, 0]) | _spread_bits(steps[:, 1]) << np.uint64(1) | _spread_bits(steps[:, 2]) << np.uint64(2)
     return np.argsort(code, kind="stable")

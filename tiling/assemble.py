@@ -12,6 +12,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from model.arrays import column_max, column_min
 from model.rules import grid_ints, grid_xyz, interleaved, spread_order
 from tiling.plan import TilePlan
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
@@ -84,7 +85,7 @@ def covering(rect: tuple[float, float, float, float], xyz: np.ndarray) -> tuple[
     """The tile's core rectangle grown to hold its kept points: a refined point may move slightly outside."""
     if len(xyz) == 0:
         return rect
-    low, high = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+    low, high = column_min(xyz[:, :2]), column_max(xyz[:, :2])
     return (min(rect[0], float(low[0])), min(rect[1], float(low[1])),
             max(rect[2], float(high[0])), max(rect[3], float(high[1])))
 

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from model.arrays import column_max, column_min
 from model.rules import kept_count
 
 
@@ -86,14 +87,16 @@ def occupied_voxels(xyz: np.ndarray, sizes: np.ndarray) -> np.ndarray:
     counts = np.zeros(len(sizes), dtype=np.int64)
     if len(xyz) == 0:
         return counts
-    cells = np.floor((xyz - xyz.min(axis=0)) / sizes[0]).astype(np.int64)  # (m, 3) occupied voxels so far
+    cells = np.floor((xyz - column_min(xyz)) / sizes[0]).astype(np.int64)  # (m, 3) occupied voxels so far
     for level in range(len(sizes)):
         if level:
             cells >>= 1
-        span = cells.max(axis=0) + 1
-        _, first = np.unique((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2], return_index=True)
-        cells = cells[first]
-        counts[level] = len(cells)
+        span = column_max(cells) + 1
+        keys = np.sort((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2])
+        keys = keys[np.concatenate([[True], keys[1:] != keys[:-1]])]  # distinct: a sort, not np.unique's argsort
+        counts[level] = len(keys)
+        rows, layer = np.divmod(keys, span[2])
+        cells = np.column_stack([*np.divmod(rows, span[1]), layer])
     return counts
 
 

@@ -9,6 +9,7 @@ from typing import Callable, Sequence
 import laspy
 import numpy as np
 
+from model.arrays import column_max, column_min
 from model.rules import grid_ints, grid_xyz
 from pipeline.errors import PipelineError
 from pipeline.io.las_source import LasSource
@@ -163,5 +164,5 @@ class Scan:
         scales, offsets = np.asarray(source.header.scales), np.asarray(source.header.offsets)
         for start in range(0, source.point_count, chunk):
             xyz = grid_xyz(source.read(start, min(chunk, source.point_count - start)), scales, offsets)
-            mins, maxs = np.minimum(mins, xyz.min(axis=0)), np.maximum(maxs, xyz.max(axis=0))
+            mins, maxs = np.minimum(mins, column_min(xyz)), np.maximum(maxs, column_max(xyz))
         source.header.mins, source.header.maxs = mins, maxs

@@ -12,6 +12,7 @@ from typing import BinaryIO
 import laspy
 import numpy as np
 
+from model.arrays import column_max, column_min
 from pipeline.errors import PipelineError
 
 LAS_PREAMBLE_BYTES = 104  # the LAS header up to and including its VLR count
@@ -171,7 +172,7 @@ def check_points(path: Path, xyz: np.ndarray, header: laspy.LasHeader) -> None:
     mins, maxs = np.asarray(header.mins[:2], np.float64), np.asarray(header.maxs[:2], np.float64)
     slack = np.maximum(BOUNDS_SLACK_STEPS * np.abs(np.asarray(header.scales[:2], np.float64)),
                        BOUNDS_SLACK_SHARE * (maxs - mins))
-    low, high = xyz[:, :2].min(axis=0), xyz[:, :2].max(axis=0)
+    low, high = column_min(xyz[:, :2]), column_max(xyz[:, :2])
     if (low < mins - slack).any() or (high > maxs + slack).any():
         raise OutsideBounds(
             f"{path}: points lie outside the header's bounds (x {low[0]:.3f}..{high[0]:.3f}, y {low[1]:.3f}.."
