@@ -239,3 +239,39 @@ def test_local_features_of_a_tile_core_are_the_whole_clouds_and_query_only_two_r
     assert len(core) < len(set_rows) < 0.5 * len(xyz)  # the halo beyond two rings was never queried
     empty = local_features(xyz, np.empty(0, dtype=np.int64))
     assert empty.nbrs.indices.shape == (0, 16) and not empty.kappa.any()
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int64, np.int32])
+def test_column_bounds_are_numpys_axis_reductions(dtype):
+    """The fast per-column bounds (model.arrays) return exactly what min/max over axis 0 return: dtype,
+    values, a NaN where a column holds one, and numpy's error on an empty array."""
+    from model.arrays import column_max, column_min
+    rng = np.random.default_rng(1)
+    values = (rng.normal(0, 1e6, (1_000, 3))).astype(dtype)
+    for narrow in (values, values[:, :2], values[::3]):
+        for ours, numpys in ((column_min(narrow), narrow.min(axis=0)), (column_max(narrow), narrow.max(axis=0))):
+            assert ours.dtype == numpys.dtype and np.array_equal(ours, numpys)
+    if np.issubdtype(dtype, np.floating):
+        values[5, 1] = np.nan
+        assert np.isnan(column_min(values)[1]) and not np.isnan(column_min(values)[[0, 2]]).any()
+    with pytest.raises(ValueError):
+        column_min(values[:0])
+
+
+def test_coordinates_of_records_and_their_grid_cells_are_the_broadcast_formulas():
+    """grid_xyz and the grid's cell rule work an axis at a time for speed; the values must be those of the
+    plain (n, 3) formulas to the last bit, or tiles would own different points."""
+    from model.rules import grid_xyz
+    from tiling.plan import DensityGrid
+    rng = np.random.default_rng(2)
+    records = np.zeros(5_000, dtype=[("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("intensity", "<u2")])
+    for name in "XYZ":
+        records[name] = rng.integers(-10**7, 10**7, len(records))
+    scales, offsets = np.array([0.001, 0.003, 0.00025]), np.array([687_123.4, 4_810_987.6, -12.5])
+    xyz = grid_xyz(records, scales, offsets)
+    expected = np.column_stack([records[name] for name in "XYZ"]).astype(np.float64) * scales + offsets
+    assert np.array_equal(xyz, expected)
+    grid = DensityGrid.covering(xyz.min(axis=0) + 500, xyz.max(axis=0) - 500, tile_size=37.0)
+    flat = np.floor((xyz[:, :2] - np.asarray(grid.origin)) / grid.cell)
+    ij = [np.clip(flat[:, a], 0, grid.shape[a] - 1).astype(np.int64) for a in (0, 1)]
+    assert np.array_equal(grid.cell_of(xyz), ij[0] * grid.shape[1] + ij[1])
