@@ -4,9 +4,8 @@ from __future__ import annotations
 import fpsample
 import numpy as np
 
-from model.arrays import column_max, column_min
 from model.geometry import curvature, knn, local_eigenvalues
-from model.rules import kept_count, spread_order
+from model.rules import column_max, column_min, kept_count, spread_order
 from model.selection import Selection, Tile, topped_up
 
 FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core

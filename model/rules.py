@@ -1,13 +1,10 @@
 """Rules the whole project shares, written once: how many points a ratio keeps, how coordinates sit on a
-LAS grid (integers times scale plus offset), and the orders that make any prefix of a selection spread
-out (a Z-order curve, bit-reversed rank). model, tiling and pipeline all import this module; it imports
-nothing of theirs (tiling imports nothing else of model)."""
+LAS grid (integers times scale plus offset), the bounds of narrow arrays, and the orders that make any
+prefix of a selection spread out (a Z-order curve, bit-reversed rank). model, tiling and pipeline all
+import this module; it imports nothing of theirs (tiling imports nothing else of model)."""
 from __future__ import annotations
 
 import numpy as np
-
-from model.arrays import column_max, column_min
-
 
 def kept_count(ratio: float, total: int) -> int:
     """round(ratio * N) with halves rounded up (not Python's banker's rounding), at most N."""
@@ -27,6 +24,17 @@ def grid_xyz(records: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> np
 def grid_ints(xyz: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """(n, 3) float64 integers of the grid steps nearest to (n, 3) coordinates (before any int32 check)."""
     return np.rint((xyz - offsets) / scales)
+
+
+def column_min(values: np.ndarray) -> np.ndarray:
+    """(d,) the least value of each column of (n, d) `values`: values.min(axis=0), exactly, but a column at
+    a time (numpy 2.4 reduces a narrow array along axis 0 about 10x slower: 2.0 against 0.2 ms for 45k x 3)."""
+    return np.array([values[:, column].min() for column in range(values.shape[1])], dtype=values.dtype)
+
+
+def column_max(values: np.ndarray) -> np.ndarray:
+    """(d,) the greatest value of each column of (n, d) `values`: values.max(axis=0), exactly."""
+    return np.array([values[:, column].max() for column in range(values.shape[1])], dtype=values.dtype)
 
 
 def _spread_bits(values: np.ndarray) -> np.ndarray:

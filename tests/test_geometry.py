@@ -5,7 +5,8 @@ import pytest
 from model import geometry
 from model.geometry import (bandwidth, curvature, knn, local_eigenvalues, local_features, local_frames, mean_curvature,
                             point_features, roughness)
-from model.rules import morton_order
+from model.rules import column_max, column_min, grid_xyz, morton_order
+from tiling.plan import DensityGrid
 
 
 def plane(n: int = 3_000, noise: float = 0.0, seed: int = 0) -> np.ndarray:
@@ -245,7 +246,6 @@ def test_local_features_of_a_tile_core_are_the_whole_clouds_and_query_only_two_r
 def test_column_bounds_are_numpys_axis_reductions(dtype):
     """The fast per-column bounds (model.arrays) return exactly what min/max over axis 0 return: dtype,
     values, a NaN where a column holds one, and numpy's error on an empty array."""
-    from model.arrays import column_max, column_min
     rng = np.random.default_rng(1)
     values = (rng.normal(0, 1e6, (1_000, 3))).astype(dtype)
     for narrow in (values, values[:, :2], values[::3]):
@@ -261,8 +261,6 @@ def test_column_bounds_are_numpys_axis_reductions(dtype):
 def test_coordinates_of_records_and_their_grid_cells_are_the_broadcast_formulas():
     """grid_xyz and the grid's cell rule work an axis at a time for speed; the values must be those of the
     plain (n, 3) formulas to the last bit, or tiles would own different points."""
-    from model.rules import grid_xyz
-    from tiling.plan import DensityGrid
     rng = np.random.default_rng(2)
     records = np.zeros(5_000, dtype=[("X", "<i4"), ("Y", "<i4"), ("Z", "<i4"), ("intensity", "<u2")])
     for name in "XYZ":

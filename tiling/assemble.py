@@ -12,8 +12,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from model.arrays import column_max, column_min
-from model.rules import grid_ints, grid_xyz, interleaved, spread_order
+from model.rules import column_max, column_min, grid_ints, grid_xyz, interleaved, spread_order
 from tiling.plan import TilePlan
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
 

@@ -3,8 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from model.arrays import column_max, column_min
-from model.rules import kept_count
+from model.rules import column_max, column_min, kept_count
 
 
 def tile_budgets(counts: np.ndarray, ratio: float, floors: np.ndarray | None = None,

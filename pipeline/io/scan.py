@@ -9,8 +9,7 @@ from typing import Callable, Sequence
 import laspy
 import numpy as np
 
-from model.arrays import column_max, column_min
-from model.rules import grid_ints, grid_xyz
+from model.rules import column_max, column_min, grid_ints, grid_xyz
 from pipeline.errors import PipelineError
 from pipeline.io.las_source import LasSource
 from pipeline.io.output_guard import check_distinct_inputs

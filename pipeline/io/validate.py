@@ -12,7 +12,7 @@ from typing import BinaryIO
 import laspy
 import numpy as np
 
-from model.arrays import column_max, column_min
+from model.rules import column_max, column_min
 from pipeline.errors import PipelineError
 
 LAS_PREAMBLE_BYTES = 104  # the LAS header up to and including its VLR count
