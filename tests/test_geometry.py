@@ -244,7 +244,7 @@ def test_local_features_of_a_tile_core_are_the_whole_clouds_and_query_only_two_r
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32, np.int64, np.int32])
 def test_column_bounds_are_numpys_axis_reductions(dtype):
-    """The fast per-column bounds (model.arrays) return exactly what min/max over axis 0 return: dtype,
+    """The fast per-column bounds (model.rules) return exactly what min/max over axis 0 return: dtype,
     values, a NaN where a column holds one, and numpy's error on an empty array."""
     rng = np.random.default_rng(1)
     values = (rng.normal(0, 1e6, (1_000, 3))).astype(dtype)
