@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
@@ -13,6 +14,20 @@ def _remove(path: Path) -> None:
         shutil.rmtree(path, ignore_errors=True)
     elif path.exists() or path.is_symlink():
         path.unlink()
+
+
+SETTLE_S = (0.02, 0.05, 0.1, 0.2, 0.4)  # waits after a failed write's removal, for writes still in flight
+
+
+def _removed_again_if_back(path: Path) -> None:
+    """Remove a failed store's folder again if it comes back within about a second: when one chunk write of
+    a zarr store fails (a full disk), zarr's asyncio.gather raises at once while its event loop thread goes
+    on with the chunks already in flight, and one that lands after the removal recreates the folder (seen
+    once under load: a `.out.zarr.tmp-PID` left behind on a full disk)."""
+    for wait in SETTLE_S:
+        time.sleep(wait)
+        if path.exists() or path.is_symlink():
+            _remove(path)
 
 
 @contextmanager
@@ -31,7 +46,10 @@ def atomic_output(final: Path) -> Iterator[Path]:
         else:
             os.replace(temporary, final)
     except BaseException:
+        store = temporary.is_dir() and not temporary.is_symlink()
         _remove(temporary)
+        if store:
+            _removed_again_if_back(temporary)
         raise
 
 
