@@ -26,8 +26,9 @@ class Method:
 
     reads_halo: ClassVar[bool] = True        # False: picks from the core alone, so a run loads no halo for it
     spaces_evenly: ClassVar[bool] = False    # True: tile budgets follow covered volume, not point counts
-    light_on_gil: ClassVar[bool] = False     # True: its work runs in compiled code that lets go of Python's GIL
-                                             # (numpy, fpsample), so threads of one process lose little to each other
+    light_on_gil: ClassVar[bool] = False     # True: its work runs in compiled code (numpy, fpsample), so threads of
+                                             # one process beat a cluster's start on bigger scans (measured; fpsample
+                                             # itself keeps the GIL: its picks go one thread at a time)
 
     def __call__(self, tile: Tile, budget: int) -> Selection:
         """`budget` core points of `tile` (fewer only if it has fewer), most important first."""
