@@ -5,7 +5,7 @@ import fpsample
 import numpy as np
 
 from model.geometry import curvature, knn, local_eigenvalues
-from model.rules import column_max, column_min, kept_count, spread_order
+from model.rules import column_max, column_min, kept_count, sorted_distinct, spread_order
 from model.selection import Selection, Tile, topped_up
 
 FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core
@@ -126,7 +126,7 @@ def _cell_for_budget(points: np.ndarray, budget: int, slack: float) -> float:
     finest = max(extent / 2**20, 1e-6)  # keeps keys within int64 and below the coordinates' precision
 
     def count(cell: float) -> int:
-        return _distinct_count(_voxel_keys(points, cell, mins, maxs))
+        return len(sorted_distinct(_voxel_keys(points, cell, mins, maxs)))
 
     low, low_count = finest, count(finest)
     if extent == 0 or low_count <= budget * (1 + slack):
@@ -143,13 +143,6 @@ def _cell_for_budget(points: np.ndarray, budget: int, slack: float) -> float:
         else:
             high, high_count = mid, mid_count
     return low
-
-
-def _distinct_count(keys: np.ndarray) -> int:
-    """How many distinct values (n,) int64 keys hold: a sort and one comparison, 16x faster on a 39k-point
-    tile than np.unique, which hashes (numpy >= 2.3) and builds the values themselves."""
-    ordered = np.sort(keys)
-    return int(np.count_nonzero(ordered[1:] != ordered[:-1])) + min(len(ordered), 1)
 
 
 def _voxel_representatives(points: np.ndarray, cell: float) -> np.ndarray:

@@ -145,3 +145,24 @@ def test_a_budget_too_small_for_the_holes_is_spent_as_farthest_point_sampling():
     fps_gap = cKDTree(tile.xyz[get_simplifier("fps")(tile, 60).indices]).query(tile.xyz)[0].max()
     random_gap = cKDTree(tile.xyz[get_simplifier("random")(tile, 60).indices]).query(tile.xyz)[0].max()
     assert gap <= 1.2 * fps_gap < random_gap
+
+
+def test_hole_cover_is_the_brute_force_cover_where_a_pick_reaches_many():
+    """The cover reads who a pick reaches from a table of 16 nearest and asks the tree past it; it must
+    pick exactly what farthest point sampling over every far point picks, with tight clusters of 40
+    (more than the table holds within a pick's reach) beside sparse strays."""
+    rng = np.random.default_rng(7)
+    clusters = np.repeat(rng.uniform(0, 30, (12, 3)), 40, axis=0) + rng.normal(0, 0.05, (480, 3))
+    xyz = np.concatenate([clusters, rng.uniform(0, 30, (300, 3))])
+    kept = np.arange(0, len(xyz), 97)
+    candidates = np.setdiff1d(np.arange(len(xyz)), kept)
+    radius = 0.8
+    gap = np.sqrt(((xyz[candidates, None] - xyz[None, kept]) ** 2).sum(-1)).min(axis=1)
+    far, gap = candidates[gap > radius], gap[gap > radius]
+    expected = []
+    while len(far) and gap.max() > radius:  # the plain O(n^2) farthest point sampling from the kept points
+        pick = int(np.argmax(gap))
+        expected.append(far[pick])
+        gap = np.minimum(gap, np.sqrt(((xyz[far] - xyz[far[pick]]) ** 2).sum(-1)))
+    assert len(expected) > 12
+    np.testing.assert_array_equal(hole_cover(xyz, kept, candidates, radius), expected)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from model.rules import column_max, column_min, kept_count
+from model.rules import column_max, column_min, kept_count, sorted_distinct
 
 
 def tile_budgets(counts: np.ndarray, ratio: float, floors: np.ndarray | None = None,
@@ -91,8 +91,7 @@ def occupied_voxels(xyz: np.ndarray, sizes: np.ndarray) -> np.ndarray:
         if level:
             cells >>= 1
         span = column_max(cells) + 1
-        keys = np.sort((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2])
-        keys = keys[np.concatenate([[True], keys[1:] != keys[:-1]])]  # distinct: a sort, not np.unique's argsort
+        keys = sorted_distinct((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2])
         counts[level] = len(keys)
         rows, layer = np.divmod(keys, span[2])
         cells = np.column_stack([*np.divmod(rows, span[1]), layer])

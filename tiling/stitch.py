@@ -32,9 +32,9 @@ def band_mask(xyz: np.ndarray, rect: Sequence[float], tolerance: float) -> np.nd
 def close_pairs(xyz: np.ndarray, tolerance: float) -> np.ndarray:
     """Every pair (i, j), i < j, of the (N, 3) points at most `tolerance` apart, shape (P, 2): what scipy's
     cKDTree.query_pairs returns, with the same rule for a pair exactly at the tolerance (squared distance
-    summed x, y, z, compared with tolerance squared), but from pykdtree's bounded kNN, so a run of fps,
-    voxel or random never imports scipy (0.3 s). Rows whose k-th neighbour is still within reach ask
-    again with twice the k, so a cluster of duplicates costs only its own rows."""
+    summed x, y, z, compared with tolerance squared), but from pykdtree's bounded kNN, so a run never
+    imports scipy (0.3 s). Rows whose k-th neighbour is still within reach ask again with twice the k,
+    so a cluster of duplicates costs only its own rows."""
     points = np.ascontiguousarray(xyz, dtype=np.float64)
     count = len(points)
     if count < 2:

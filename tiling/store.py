@@ -34,7 +34,6 @@ class StoredPoints:
     index: np.ndarray
 
 
-
 @dataclass(frozen=True)
 class Slice:
     """Rows [start, stop) of piece `piece`'s array, or of its crowded-cell copy (sorted by sub-cell)."""
