@@ -99,18 +99,24 @@ def test_edge_case_file_runs_or_fails_in_one_line(tmp_path, name):
         fails_cleanly(tmp_path, [source], *EDGE_CASES[name])
 
 
-@pytest.mark.parametrize("suffix", [".las", ".laz"])
-def test_truncated_file(tmp_path, suffix):
-    source = make_las(tmp_path / f"whole{suffix}", scattered(20_000))
+@pytest.mark.parametrize("suffix, points", [(".las", 20_000), (".laz", 20_000), (".laz", 130_000)],
+                         ids=["las", "laz-one-chunk", "laz-three-chunks"])
+def test_truncated_file(tmp_path, suffix, points):
+    """Also a LAZ file of several chunks, whose pieces are decoded through the chunk table: cut short, it
+    has none where its header points, and the read falls back to seeking, which reports the truncation."""
+    source = make_las(tmp_path / f"whole{suffix}", scattered(points))
     truncated = tmp_path / f"half{suffix}"
     truncated.write_bytes(source.read_bytes()[: source.stat().st_size // 2])
     fails_cleanly(tmp_path, [truncated], truncated.name, "header says" if suffix == ".las" else "truncated")
 
 
-@pytest.mark.parametrize("suffix", [".las", ".laz"])
-def test_header_count_larger_than_the_data(tmp_path, suffix):
-    """LAS is caught from the file size; LAZ only when a Dask worker decodes past the data (a task error)."""
-    source = patched(make_las(tmp_path / f"in{suffix}", scattered(3_000)), LEGACY_COUNT, 5_000)
+@pytest.mark.parametrize("suffix, points, claimed", [(".las", 3_000, 5_000), (".laz", 3_000, 5_000),
+                                                     (".laz", 130_000, 140_000), (".laz", 130_000, 200_000)],
+                         ids=["las", "laz-one-chunk", "laz-last-chunk-short", "laz-chunks-missing"])
+def test_header_count_larger_than_the_data(tmp_path, suffix, points, claimed):
+    """LAS is caught from the file size; LAZ only when a task decodes past the data: in the last chunk the
+    table lists (lazrs asked for more points than it holds) or past the table's end."""
+    source = patched(make_las(tmp_path / f"in{suffix}", scattered(points)), LEGACY_COUNT, claimed)
     fails_cleanly(tmp_path, [source], source.name, "header says" if suffix == ".las" else "cannot read")
 
 
@@ -297,6 +303,20 @@ def test_read_only_output_folder(tmp_path):
     output = tmp_path / "ro" / "out.las"
     result = in_private_mount(output.parent, "ro", "run", str(source), "--ratio", "0.1", "-o", str(output), *FAST)
     assert_one_line_error(result, str(output.parent), "not writable")
+
+
+def test_laz_pieces_are_the_files_points_within_and_across_chunks(tmp_path):
+    """Pieces of more than one chunk are decoded through the chunk table (chunks in parallel), others by
+    seeking; laspy's own reading of the whole file is the reference, the last chunk's part included."""
+    from pipeline.io.las_source import LasSource, spans_chunks
+
+    path = make_las(tmp_path / "in.laz", scattered(130_000))  # chunks of 50,000: the last holds 30,000
+    whole = laspy.read(path).points.array
+    source = LasSource(path)
+    pieces = ((0, 130_000), (0, 5), (49_990, 20), (10, 60_000), (99_999, 30_001), (129_990, 10), (50_000, 50_000))
+    assert [spans_chunks(source.header, *piece) for piece in pieces] == [True, False, True, True, True, False, False]
+    for start, count in pieces:
+        np.testing.assert_array_equal(source.read(start, count), whole[start:start + count])
 
 
 class PanicException(BaseException):

@@ -3,6 +3,7 @@ reached over TCP; imported only when a run needs one (dask.distributed takes 0.3
 from __future__ import annotations
 
 import logging
+import os
 import socket
 from contextlib import contextmanager
 from typing import Iterator
@@ -112,8 +113,11 @@ def quiet_dask_logs() -> None:
 
 class WorkerSettings(WorkerPlugin):
     """Applied in every worker process, including ones started after a worker dies or joins later:
-    quiet_dask_logs, and large arrays mapped whole (pipeline.engine.allocator), so memory stays flat over a run."""
+    quiet_dask_logs, large arrays mapped whole (pipeline.engine.allocator), so memory stays flat over a run,
+    and lazrs's chunk-parallel LAZ decoding (pipeline.io.las_source.read_records) held to one thread unless
+    the worker's environment says otherwise: a worker runs one thread, and its peers decode beside it."""
 
     def setup(self, worker: object) -> None:
         quiet_dask_logs()
         map_large_arrays()
+        os.environ.setdefault("RAYON_NUM_THREADS", "1")  # read when lazrs first decodes in parallel
