@@ -73,7 +73,7 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf,
     trial = weighted_picks(curve, curve_weights, planned, phase)
     radius = cover_spacings * typical_spacing(tile.xyz[trial]) if context is None else context.cover_radius
     fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase), planned,
-                                     radius, len(hole_cover(tile.xyz, trial, core, radius)))
+                                     radius, len(hole_cover(tile.xyz, trial, core, radius, curve)))
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
     return Selection.of(tile, topped_up(order, core, budget, rng))
 
@@ -90,7 +90,7 @@ def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget:
         fill = fill_of(budget - holes)
         rest = tile.core.copy()
         rest[fill] = False
-        cover = hole_cover(tile.xyz, fill, np.flatnonzero(rest), radius)
+        cover = hole_cover(tile.xyz, fill, np.flatnonzero(rest), radius, tile.curve)
         if len(cover) <= holes or holes == budget:
             break
         holes = min(2 * len(cover) - holes, budget)
@@ -178,14 +178,22 @@ def typical_spacing(points: np.ndarray) -> float:
     return float(np.median(distance[:, 1]))
 
 
-def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius: float) -> np.ndarray:
+def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius: float,
+               curve: np.ndarray | None = None) -> np.ndarray:
     """Candidates that bring every candidate within `radius` of a pick, largest gap first: farthest point
     sampling continued from the kept points (each candidate's gap starts as its distance to them; with
     none kept, plain FPS from the first candidate), stopped once no gap exceeds `radius`. Only candidates
-    farther than `radius` from the kept points take part."""
+    farther than `radius` from the kept points take part. `curve`: the tile's curve (Tile.curve), holding
+    every kept point and candidate, if the caller has it (fewer distances are then queried)."""
     if len(candidates) == 0 or radius <= 0:
         return np.empty(0, dtype=np.int64)
-    distance = nearest_distance(xyz[kept], xyz[candidates]) if len(kept) else np.full(len(candidates), np.inf)
+    if len(kept) == 0:
+        distance = np.full(len(candidates), np.inf)
+    else:
+        distance = np.zeros(len(candidates))
+        open_ = np.arange(len(candidates)) if curve is None else np.flatnonzero(~near_along(xyz, kept, candidates,
+                                                                                             radius, curve))
+        distance[open_] = nearest_distance(xyz[kept], xyz[candidates[open_]])
     far = candidates[distance > radius]
     if len(far) == 0:
         return far.astype(np.int64)
@@ -240,6 +248,32 @@ class Reach:
             if index[-1] >= count or k == count:
                 return index[index < count]
             k = min(4 * k, count)
+
+
+def near_along(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius: float,
+               curve: np.ndarray) -> np.ndarray:
+    """(m,) bool: candidates surely within `radius` of a kept point, as the kept point before or after them
+    on the tile's Z-order `curve` is (with a margin of 1e-9 of the radius, so the tree would say so too).
+    On bcts_1+2's tiles that settled 91 % of the fills' candidates, and the covers' distances took 0.8-0.9 s
+    instead of 1.3-1.8 s (one thread), with the same covers."""
+    position = np.full(len(xyz), -1, dtype=np.int64)
+    position[curve] = np.arange(len(curve))
+    is_kept = np.zeros(len(curve) + 1, dtype=np.int64)
+    is_kept[position[kept] + 1] = 1
+    on_curve = curve[np.sort(position[kept])]  # the kept points in curve order
+    at = position[candidates]
+    after = np.cumsum(is_kept)[at]  # kept points before each candidate on the curve: the next one's rank
+    planes = [np.ascontiguousarray(xyz[:, axis]) for axis in range(3)]
+    near = np.zeros(len(candidates), dtype=bool)
+    reach = (radius * (1 - 1e-9)) ** 2
+    for beside in (np.maximum(after - 1, 0), np.minimum(after, len(on_curve) - 1)):
+        open_ = np.flatnonzero(~near)  # the kept point after a candidate is asked only where the one before is far
+        squared = np.zeros(len(open_))
+        for plane in planes:
+            offset = plane[candidates[open_]] - plane[on_curve[beside[open_]]]
+            squared += offset * offset
+        near[open_] = squared <= reach
+    return near
 
 
 def nearest_distance(points: np.ndarray, queries: np.ndarray) -> np.ndarray:

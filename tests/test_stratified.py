@@ -6,7 +6,7 @@ from scipy.spatial import cKDTree
 from model import Tile, get_simplifier
 from model.rules import radical_inverse_order
 from model.selection import FillContext, FillLoss
-from model.stratified import hole_cover, systematic_picks, typical_spacing
+from model.stratified import hole_cover, near_along, systematic_picks, typical_spacing
 
 
 def dense_beside_sparse(seed: int = 0) -> tuple[Tile, np.ndarray]:
@@ -166,3 +166,20 @@ def test_hole_cover_is_the_brute_force_cover_where_a_pick_reaches_many():
         gap = np.minimum(gap, np.sqrt(((xyz[far] - xyz[far[pick]]) ** 2).sum(-1)))
     assert len(expected) > 12
     np.testing.assert_array_equal(hole_cover(xyz, kept, candidates, radius), expected)
+
+
+def test_candidates_settled_along_the_curve_are_within_reach_and_the_cover_is_unchanged():
+    """near_along settles a candidate by the kept points before and after it on the tile's curve, so the
+    tree is asked only for the rest: what it settles must be within the radius, it must settle most of the
+    candidates within it of an even fill, and the cover must be the one of asking the tree for every candidate."""
+    rng = np.random.default_rng(11)
+    xyz = np.concatenate([rng.uniform(0, 20, (6_000, 3)) * [1, 1, 0.05], rng.uniform(0, 40, (200, 3))])
+    tile = Tile(xyz, np.ones(len(xyz), dtype=bool), np.zeros(3), seed=0)
+    for count, radius in ((600, 1.0), (600, 0.3), (60, 2.0)):
+        kept = systematic_picks(tile.curve, count, 0.5)
+        candidates = np.setdiff1d(np.arange(len(xyz)), kept)
+        near = near_along(xyz, kept, candidates, radius, tile.curve)
+        distance = cKDTree(xyz[kept]).query(xyz[candidates])[0]
+        assert (distance[near] <= radius).all() and near.sum() > 0.7 * (distance <= radius).sum() > 0
+        np.testing.assert_array_equal(hole_cover(xyz, kept, candidates, radius, tile.curve),
+                                      hole_cover(xyz, kept, candidates, radius))
