@@ -5,7 +5,7 @@ import fpsample
 import numpy as np
 
 from model.geometry import curvature, knn, local_eigenvalues
-from model.rules import column_max, column_min, kept_count, sorted_distinct, spread_order
+from model.rules import kept_count, sorted_distinct, spread_order
 from model.selection import Selection, Tile, topped_up
 
 FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core
@@ -99,34 +99,47 @@ def voxel_simplify(tile: Tile, budget: int, slack: float = VOXEL_COUNT_SLACK) ->
     if budget == 0:
         return Selection.of(tile, np.empty(0, dtype=np.int64))
     points = tile.xyz[core] + tile.centre
-    cell = _cell_for_budget(points, budget, slack)
-    reps = core[_voxel_representatives(points, cell)]
+    columns = axis_columns(points)
+    cell = _cell_for_budget(columns, budget, slack)
+    reps = core[_voxel_representatives(columns, cell)]
     rng = np.random.default_rng(tile.seed)
     order = reps[spread_order(tile.xyz[reps], int(rng.integers(len(reps))))]
     return Selection.of(tile, topped_up(order, core, budget, rng))
 
 
-def _voxel_keys(points: np.ndarray, cell: float, mins: np.ndarray, maxs: np.ndarray) -> np.ndarray:
-    """One int64 key per point naming its voxel; mins/maxs bound the points (floor is monotone, so
-    the lowest voxel index is floor(mins / cell) without another pass over the points)."""
+def axis_columns(points: np.ndarray) -> list[np.ndarray]:
+    """The x, y and z columns of (n, 3) points, each contiguous (n,): elementwise work on them ran 4.5x faster
+    than on the (n, 3) rows (voxel keys of 30k points, 0.37 against 1.67 ms), with the same values."""
+    return [np.ascontiguousarray(points[:, axis]) for axis in range(3)]
+
+
+def column_bounds(columns: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) mins and (3,) maxs of x, y, z `columns`."""
+    return np.array([column.min() for column in columns]), np.array([column.max() for column in columns])
+
+
+def _voxel_keys(columns: list[np.ndarray], cell: float, mins: np.ndarray, maxs: np.ndarray) -> np.ndarray:
+    """One int64 key per point (its (n,) x, y, z `columns`) naming its voxel; mins/maxs bound the points
+    (floor is monotone, so the lowest voxel index is floor(mins / cell) without another pass over them)."""
     low = np.floor(mins / cell)
     span = (np.floor(maxs / cell) - low + 1).astype(np.int64)
-    ijk = (np.floor(points / cell) - low).astype(np.int64)
-    return (ijk[:, 0] * span[1] + ijk[:, 1]) * span[2] + ijk[:, 2]
+    i, j, k = ((np.floor(column / cell) - lowest).astype(np.int64) for column, lowest in zip(columns, low))
+    return (i * span[1] + j) * span[2] + k
 
 
-def _cell_for_budget(points: np.ndarray, budget: int, slack: float) -> float:
-    """A cell size whose occupied-voxel count is at least the budget and at most `slack` (a share) above it.
+def _cell_for_budget(columns: list[np.ndarray], budget: int, slack: float) -> float:
+    """A cell size whose occupied-voxel count, for points given as x, y, z `columns` (axis_columns), is at
+    least the budget and at most `slack` (a share) above it.
 
     The count falls roughly as a power of the cell size, so each step interpolates in log-log space
     between a cell known to give enough voxels and one known to give too few (a few steps, not 20).
     """
-    mins, maxs = column_min(points), column_max(points)
+    mins, maxs = column_bounds(columns)
     extent = float((maxs - mins).max())
     finest = max(extent / 2**20, 1e-6)  # keeps keys within int64 and below the coordinates' precision
 
     def count(cell: float) -> int:
-        return len(sorted_distinct(_voxel_keys(points, cell, mins, maxs)))
+        return len(sorted_distinct(_voxel_keys(columns, cell, mins, maxs)))
 
     low, low_count = finest, count(finest)
     if extent == 0 or low_count <= budget * (1 + slack):
@@ -145,11 +158,14 @@ def _cell_for_budget(points: np.ndarray, budget: int, slack: float) -> float:
     return low
 
 
-def _voxel_representatives(points: np.ndarray, cell: float) -> np.ndarray:
-    """Index of the point nearest its voxel centre, one per occupied voxel, in voxel-key order."""
-    keys = _voxel_keys(points, cell, column_min(points), column_max(points))
-    centres = (np.floor(points / cell) + 0.5) * cell
-    distance = np.einsum("ij,ij->i", points - centres, points - centres)
+def _voxel_representatives(columns: list[np.ndarray], cell: float) -> np.ndarray:
+    """Index of the point (of x, y, z `columns`) nearest its voxel centre, one per occupied voxel, in
+    voxel-key order."""
+    keys = _voxel_keys(columns, cell, *column_bounds(columns))
+    distance = np.zeros(len(keys))
+    for column in columns:
+        offset = column - (np.floor(column / cell) + 0.5) * cell
+        distance += offset * offset
     order = np.lexsort((distance, keys))
     first = np.ones(len(order), dtype=bool)
     first[1:] = keys[order][1:] != keys[order][:-1]

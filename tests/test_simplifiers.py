@@ -59,10 +59,10 @@ def test_fps_keeps_one_point_of_each_far_cluster_on_a_tiny_tile(centre):
 def test_voxel_keeps_one_point_per_voxel_nearest_its_centre():
     tile = make_tile()
     selection = get_simplifier("voxel")(tile, 800)
-    from model.baselines import VOXEL_COUNT_SLACK, _cell_for_budget
+    from model.baselines import VOXEL_COUNT_SLACK, _cell_for_budget, axis_columns
 
     points = tile.xyz[tile.core] + tile.centre
-    cell = _cell_for_budget(points, 800, VOXEL_COUNT_SLACK)
+    cell = _cell_for_budget(axis_columns(points), 800, VOXEL_COUNT_SLACK)
     kept = selection.xyz + tile.centre
     kept_voxels = np.floor(kept / cell)
     assert len(np.unique(kept_voxels, axis=0)) == 800
