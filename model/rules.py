@@ -62,7 +62,21 @@ def morton_order(xyz: np.ndarray) -> np.ndarray:
     span = max(float((column_max(xyz) - low).max()), 1e-300)
     steps = ((xyz - low) * ((2**21 - 1) / span)).astype(np.uint64)
     code = _spread_bits(steps[:, 0]) | _spread_bits(steps[:, 1]) << np.uint64(1) | _spread_bits(steps[:, 2]) << np.uint64(2)
-    return np.argsort(code, kind="stable")
+    return stable_argsort(code)
+
+
+def stable_argsort(keys: np.ndarray) -> np.ndarray:
+    """np.argsort(keys, kind="stable") (equal keys in index order), from numpy's default sort, which is
+    vectorised (58k uint64 Morton codes: 1.7 against 8.1 ms), and equal keys put back in index order
+    afterwards: cheap where they are few, as a curve's codes are (only points within 2**-21 of the extent
+    of each other share one)."""
+    order = np.argsort(keys)
+    ranked = keys[order]
+    tied = np.flatnonzero(ranked[1:] == ranked[:-1])
+    if len(tied):
+        runs = np.union1d(tied, tied + 1)  # positions in runs of equal keys
+        order[runs] = order[runs[np.lexsort((order[runs], ranked[runs]))]]
+    return order
 
 
 def radical_inverse_order(count: int) -> np.ndarray:
@@ -74,7 +88,7 @@ def radical_inverse_order(count: int) -> np.ndarray:
     reversed_bits = np.zeros(count, dtype=np.uint64)
     for bit in range(bits):
         reversed_bits |= ((index >> np.uint64(bit)) & np.uint64(1)) << np.uint64(bits - 1 - bit)
-    return np.argsort(reversed_bits, kind="stable")
+    return np.argsort(reversed_bits)  # distinct keys: every sort gives this order
 
 
 def interleaved(first: np.ndarray, second: np.ndarray) -> np.ndarray:

@@ -5,7 +5,7 @@ import pytest
 from model import geometry
 from model.geometry import (bandwidth, curvature, knn, local_eigenvalues, local_features, local_frames, mean_curvature,
                             point_features, roughness)
-from model.rules import column_max, column_min, grid_xyz, morton_order
+from model.rules import column_max, column_min, grid_xyz, morton_order, stable_argsort
 from tiling.plan import DensityGrid
 
 
@@ -273,3 +273,18 @@ def test_coordinates_of_records_and_their_grid_cells_are_the_broadcast_formulas(
     flat = np.floor((xyz[:, :2] - np.asarray(grid.origin)) / grid.cell)
     ij = [np.clip(flat[:, a], 0, grid.shape[a] - 1).astype(np.int64) for a in (0, 1)]
     assert np.array_equal(grid.cell_of(xyz), ij[0] * grid.shape[1] + ij[1])
+
+
+@pytest.mark.parametrize("count, distinct", [(0, 1), (1, 1), (2, 1), (1_000, 7), (50_000, 2**60), (50_000, 40_000)])
+def test_stable_argsort_is_numpys_stable_argsort(count, distinct):
+    """The default (vectorised) sort with runs of equal keys put back in index order: the stable order,
+    whether keys are all equal, mostly tied, or distinct (as a Z-order curve's codes nearly are)."""
+    keys = np.random.default_rng(count).integers(0, distinct, count).astype(np.uint64)
+    np.testing.assert_array_equal(stable_argsort(keys), np.argsort(keys, kind="stable"))
+
+
+def test_morton_order_keeps_file_order_among_points_of_one_code():
+    """Points closer than 2**-21 of the extent share a code; among them the order is the points' own."""
+    xyz = np.repeat(np.random.default_rng(3).uniform(0, 10, (300, 3)), 4, axis=0)[::-1].copy()
+    runs = morton_order(xyz).reshape(300, 4)  # each point's four copies in a row, lowest index first
+    assert (np.diff(runs, axis=1) == 1).all()
