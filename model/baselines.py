@@ -5,7 +5,7 @@ import fpsample
 import numpy as np
 
 from model.geometry import curvature, knn, local_eigenvalues
-from model.rules import kept_count, sorted_distinct, spread_order
+from model.rules import column_max, column_min, kept_count, sorted_distinct, spread_order
 from model.selection import Selection, Tile, topped_up
 
 FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core
@@ -99,9 +99,9 @@ def voxel_simplify(tile: Tile, budget: int, slack: float = VOXEL_COUNT_SLACK) ->
     if budget == 0:
         return Selection.of(tile, np.empty(0, dtype=np.int64))
     points = tile.xyz[core] + tile.centre
-    columns = axis_columns(points)
-    cell = _cell_for_budget(columns, budget, slack)
-    reps = core[_voxel_representatives(columns, cell)]
+    columns, bounds = axis_columns(points), (column_min(points), column_max(points))
+    cell = _cell_for_budget(columns, bounds, budget, slack)
+    reps = core[_voxel_representatives(columns, bounds, cell)]
     rng = np.random.default_rng(tile.seed)
     order = reps[spread_order(tile.xyz[reps], int(rng.integers(len(reps))))]
     return Selection.of(tile, topped_up(order, core, budget, rng))
@@ -113,11 +113,6 @@ def axis_columns(points: np.ndarray) -> list[np.ndarray]:
     return [np.ascontiguousarray(points[:, axis]) for axis in range(3)]
 
 
-def column_bounds(columns: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(3,) mins and (3,) maxs of x, y, z `columns`."""
-    return np.array([column.min() for column in columns]), np.array([column.max() for column in columns])
-
-
 def _voxel_keys(columns: list[np.ndarray], cell: float, mins: np.ndarray, maxs: np.ndarray) -> np.ndarray:
     """One int64 key per point (its (n,) x, y, z `columns`) naming its voxel; mins/maxs bound the points
     (floor is monotone, so the lowest voxel index is floor(mins / cell) without another pass over them)."""
@@ -127,14 +122,15 @@ def _voxel_keys(columns: list[np.ndarray], cell: float, mins: np.ndarray, maxs: 
     return (i * span[1] + j) * span[2] + k
 
 
-def _cell_for_budget(columns: list[np.ndarray], budget: int, slack: float) -> float:
-    """A cell size whose occupied-voxel count, for points given as x, y, z `columns` (axis_columns), is at
-    least the budget and at most `slack` (a share) above it.
+def _cell_for_budget(columns: list[np.ndarray], bounds: tuple[np.ndarray, np.ndarray], budget: int,
+                     slack: float) -> float:
+    """A cell size whose occupied-voxel count, for points given as x, y, z `columns` (axis_columns) within
+    (3,) mins and maxs `bounds`, is at least the budget and at most `slack` (a share) above it.
 
     The count falls roughly as a power of the cell size, so each step interpolates in log-log space
     between a cell known to give enough voxels and one known to give too few (a few steps, not 20).
     """
-    mins, maxs = column_bounds(columns)
+    mins, maxs = bounds
     extent = float((maxs - mins).max())
     finest = max(extent / 2**20, 1e-6)  # keeps keys within int64 and below the coordinates' precision
 
@@ -158,10 +154,11 @@ def _cell_for_budget(columns: list[np.ndarray], budget: int, slack: float) -> fl
     return low
 
 
-def _voxel_representatives(columns: list[np.ndarray], cell: float) -> np.ndarray:
-    """Index of the point (of x, y, z `columns`) nearest its voxel centre, one per occupied voxel, in
-    voxel-key order."""
-    keys = _voxel_keys(columns, cell, *column_bounds(columns))
+def _voxel_representatives(columns: list[np.ndarray], bounds: tuple[np.ndarray, np.ndarray],
+                           cell: float) -> np.ndarray:
+    """Index of the point (of x, y, z `columns` within (3,) mins and maxs `bounds`) nearest its voxel
+    centre, one per occupied voxel, in voxel-key order."""
+    keys = _voxel_keys(columns, cell, *bounds)
     distance = np.zeros(len(keys))
     for column in columns:
         offset = column - (np.floor(column / cell) + 0.5) * cell

@@ -62,7 +62,7 @@ def test_voxel_keeps_one_point_per_voxel_nearest_its_centre():
     from model.baselines import VOXEL_COUNT_SLACK, _cell_for_budget, axis_columns
 
     points = tile.xyz[tile.core] + tile.centre
-    cell = _cell_for_budget(axis_columns(points), 800, VOXEL_COUNT_SLACK)
+    cell = _cell_for_budget(axis_columns(points), (points.min(axis=0), points.max(axis=0)), 800, VOXEL_COUNT_SLACK)
     kept = selection.xyz + tile.centre
     kept_voxels = np.floor(kept / cell)
     assert len(np.unique(kept_voxels, axis=0)) == 800

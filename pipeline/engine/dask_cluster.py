@@ -114,7 +114,7 @@ def quiet_dask_logs() -> None:
 class WorkerSettings(WorkerPlugin):
     """Applied in every worker process, including ones started after a worker dies or joins later:
     quiet_dask_logs, large arrays mapped whole (pipeline.engine.allocator), so memory stays flat over a run,
-    and lazrs's chunk-parallel LAZ decoding (pipeline.io.las_source.read_records) held to one thread unless
+    and lazrs's chunk-parallel LAZ decoding (pipeline.io.las_source.LasSource.read) held to one thread unless
     the worker's environment says otherwise: a worker runs one thread, and its peers decode beside it."""
 
     def setup(self, worker: object) -> None:

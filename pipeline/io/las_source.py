@@ -8,6 +8,7 @@ import sys
 import tempfile
 import threading
 from contextlib import contextmanager
+from functools import cached_property
 from pathlib import Path
 from typing import Iterator
 
@@ -124,11 +125,34 @@ class LasSource:
         """Points the header claims (the data may hold fewer if the file is truncated)."""
         return int(self.header.point_count)
 
+    @cached_property
+    def chunks(self) -> tuple[list[tuple[int, int]], int] | None:
+        """The LAZ chunk table (chunk_table), read once per source; None for LAS, or for a fixed-chunk file
+        whose table cannot be read (old writers, truncation): that one is read by seeking, whose short read
+        reports the truncation."""
+        if laszip_record(self.header) is None:
+            return None
+        try:
+            return chunk_table(self.path, self.header)
+        except lazrs.LazrsError:
+            if variable_chunks(self.header):
+                raise
+            return None
+
     def read(self, start: int, count: int) -> np.ndarray:
-        """Raw point records [start, start+count) in laspy's structured dtype (LAZ seeks by chunk table)."""
+        """Raw point records [start, start+count) in laspy's structured dtype. LAZ points of more than one
+        chunk are decoded through the chunk table, chunks in parallel (lazrs's threads: bcts_1's 532k points
+        in 0.17 s against 0.30 s one chunk after another, on 2 cores), so an in-process run's decodes, which
+        go one at a time (FD2_REDIRECTED and the GIL), still use every core; a worker process is held to one
+        such thread (pipeline.engine.dask_cluster)."""
         try:
             with native_panics_silenced(), open_las(self.path) as reader:
-                records = read_records(self.path, reader, start, count)
+                chunks = self.chunks
+                if chunks is not None and (variable_chunks(self.header) or spans_chunks(self.header, start, count)):
+                    records = read_by_chunk_table(self.path, self.header, start, count, chunks)
+                else:
+                    reader.seek(start)
+                    records = reader.read_points(count).array
         except BaseException as exc:  # lazrs raises PanicException, a BaseException
             if is_fatal_signal(exc):
                 raise
@@ -149,26 +173,6 @@ def variable_chunks(header: laspy.LasHeader) -> bool:
     """Whether a LAZ file's chunks each hold their own number of points (COPC always, some writers too)."""
     laszip = laszip_record(header)
     return laszip is not None and lazrs.LazVlr(laszip).chunk_size() == VARIABLE_CHUNKS
-
-
-def read_records(path: Path, reader: laspy.LasReader, start: int, count: int) -> np.ndarray:
-    """Records [start, start+count) of an open LAS/LAZ file. LAZ points of more than one chunk are decoded
-    through the chunk table, chunks in parallel (lazrs's threads: bcts_1's 532k points in 0.17 s against
-    0.30 s one chunk after another, on 2 cores), so an in-process run's decodes, which go one at a time
-    (FD2_REDIRECTED and the GIL), still use every core; a worker process is held to one such thread
-    (pipeline.engine.dask_cluster). A file whose table cannot be read (old writers, truncation) is read by
-    seeking, whose short read reports the truncation."""
-    header = reader.header
-    if laszip_record(header) is not None and (variable_chunks(header) or spans_chunks(header, start, count)):
-        try:
-            table = chunk_table(path, header)
-        except lazrs.LazrsError:
-            if variable_chunks(header):
-                raise
-        else:
-            return read_by_chunk_table(path, header, start, count, table)
-    reader.seek(start)
-    return reader.read_points(count).array
 
 
 def spans_chunks(header: laspy.LasHeader, start: int, count: int) -> bool:
