@@ -95,7 +95,7 @@ def test_descriptors_and_prediction_do_not_depend_on_the_row_batches(monkeypatch
     """Descriptors and the prediction are made a batch of rows at a time (memory); rows of 777 instead of
     8,192, and core blocks of 1,000 instead of 32,768, give the same descriptors, and predictions equal
     to float32 round-off (the matrix products' BLAS kernels may sum in another order for another batch
-    shape)."""
+    shape: through three layers that reached 1.2e-6 relative, some ten float32 ulps, in one CI run)."""
     import model.detail
     import model.geometry
 
@@ -108,7 +108,7 @@ def test_descriptors_and_prediction_do_not_depend_on_the_row_batches(monkeypatch
     batched = descriptors(tile, 4_000)
     assert tile.core_count > 5_000
     np.testing.assert_array_equal(batched, whole)
-    np.testing.assert_allclose(weights.predict(batched), prediction, rtol=1e-6)
+    np.testing.assert_allclose(weights.predict(batched), prediction, rtol=1e-5)
 
 
 def test_descriptors_of_a_rotated_tile_agree_but_for_the_measured_thinning():
