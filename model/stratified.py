@@ -19,7 +19,7 @@ order, interleaved by rank), so a prefix is itself a spread-out, coarser result.
 from __future__ import annotations
 
 import heapq
-from typing import Callable
+from typing import Callable, Iterable
 
 import numpy as np
 from pykdtree.kdtree import KDTree
@@ -197,57 +197,81 @@ def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius
     far = candidates[distance > radius]
     if len(far) == 0:
         return far.astype(np.int64)
-    gap = distance[distance > radius]
     points = np.ascontiguousarray(xyz[far], dtype=np.float64)
-    neighbourhood = Reach(points)
-    largest = [(-g, i) for i, g in enumerate(gap.tolist())]  # a max-heap of gaps, refreshed lazily (gaps only shrink)
+    return far[farthest_continued(points, distance[distance > radius], radius)]
+
+
+def farthest_continued(points: np.ndarray, gap: np.ndarray, radius: float) -> np.ndarray:
+    """Positions among `points` (n, 3) float64 in pick order: farthest point sampling from each point's
+    starting `gap` (n,) (its distance to what is already kept), stopped once no gap exceeds `radius`.
+
+    The loop runs on Python floats and lists, a pick's update over the Reach table of its nearest points:
+    a pick costs a few microseconds, where numpy calls on its 4-16 neighbours cost about 48 (bcts_1+2's
+    covers: 25k picks took 1.2 s, all of it holding the GIL, which two in-process workers share)."""
+    reach = Reach(points)
+    gaps = gap.tolist()
+    largest = [(-g, i) for i, g in enumerate(gaps)]  # a max-heap of gaps, refreshed lazily (gaps only shrink)
     heapq.heapify(largest)
     picks: list[int] = []
     while largest:
         stale, pick = heapq.heappop(largest)
-        if -stale != gap[pick]:  # shrunk since pushed: push its current gap and look again
-            if gap[pick] > radius:
-                heapq.heappush(largest, (-gap[pick], pick))
+        current = gaps[pick]
+        if -stale != current:  # shrunk since pushed: push its current gap and look again
+            if current > radius:
+                heapq.heappush(largest, (-current, pick))
             continue
-        if gap[pick] <= radius:
+        if current <= radius:
             break
         picks.append(pick)
-        reach = float(gap[pick])  # only points within the largest gap can come closer
-        reached = neighbourhood.of(pick, reach) if np.isfinite(reach) else np.arange(len(points))
-        offsets = points[reached] - points[pick]
-        gap[reached] = np.minimum(gap[reached], np.sqrt(np.einsum("ij,ij->i", offsets, offsets)))
-        gap[pick] = 0.0
-    return far[np.asarray(picks, dtype=np.int64)]
+        for point, distance in reach.around(pick, current):
+            if distance < gaps[point]:
+                gaps[point] = distance
+        gaps[pick] = 0.0
+    return np.asarray(picks, dtype=np.int64)
 
 
 class Reach:
-    """Which of a tile's far points (n, 3) each one reaches, for the hole cover: a table of every point's
-    REACH_NEIGHBOURS nearest (one batched pykdtree query; a pick reaches about 4 on real scans), and the
-    tree for the rare pick whose reach goes past its table. Per pick as fast as scipy's ball query (measured
-    on the covers of a street, bcts_1 and lone-star; a bounded kNN per pick was 9 % slower on the street),
-    and a run needs no scipy (0.3 s to import). The table holds 192 bytes per far point."""
+    """The far points (n, 3) a pick of the hole cover can bring closer: a table of every point's
+    REACH_NEIGHBOURS nearest and their distances (one batched pykdtree query; a pick reaches about 4 on real
+    scans), each pick's row read out as Python numbers, and the tree for the rare pick whose reach goes past its table (218 of bcts_1+2's
+    25k picks). Distances are sqrt(dx^2 + dy^2 + dz^2) summed in that order, as numpy's einsum sums them
+    (pykdtree's own differ from it by an ulp in 9 % of pairs), so the cover is the same however a point is
+    reached. The table holds 192 bytes per far point."""
 
     def __init__(self, points: np.ndarray) -> None:
         self.points = points
         self.tree = KDTree(points)
         self.k = min(REACH_NEIGHBOURS, len(points))
-        distance, index = self.tree.query(points, k=self.k)
-        self.distance = distance.reshape(len(points), self.k)  # (n, k) ascending
-        self.index = index.reshape(len(points), self.k).astype(np.int32)
+        _, index = self.tree.query(points, k=self.k)
+        index = index.reshape(len(points), self.k).astype(np.int64)
+        self.index = index
+        self.distance = self.distances(np.repeat(np.arange(len(points)), self.k), index.ravel()).reshape(index.shape)
 
-    def of(self, pick: int, reach: float) -> np.ndarray:
-        """Indices of the points within `reach` of points[pick], perhaps with a few a hair beyond it
-        (harmless to the cover: no gap exceeds the reach, so none of theirs can shrink)."""
-        bound = reach * (1 + 1e-9)
+    def distances(self, origins: np.ndarray, targets: np.ndarray) -> np.ndarray:
+        """(m,) float64 distance from points[origins[i]] to points[targets[i]]."""
+        offsets = self.points[targets] - self.points[origins]
+        return np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
+
+    def around(self, pick: int, reach: float) -> Iterable[tuple[int, float]]:
+        """(point, distance) of at least every point within `reach` of points[pick] (itself included), and
+        perhaps some beyond it: harmless to the cover, where no gap exceeds the reach, so none of theirs
+        can shrink."""
         count = len(self.points)
+        bound = reach * (1 + 1e-9)
         if self.distance[pick, -1] > bound or self.k == count:
-            return self.index[pick][self.distance[pick] <= bound]
-        k = min(4 * self.k, count)
-        while True:  # more reached than the table holds: ask the tree, k raised until the last is out of reach
-            index = self.tree.query(self.points[pick:pick + 1], k=k, distance_upper_bound=bound)[1].reshape(-1)
-            if index[-1] >= count or k == count:
-                return index[index < count]
-            k = min(4 * k, count)
+            return zip(self.index[pick].tolist(), self.distance[pick].tolist())
+        if not np.isfinite(reach):  # nothing kept yet: every point
+            reached = np.arange(count)
+        else:
+            k = min(4 * self.k, count)
+            while True:  # more reached than the table holds: ask the tree, k raised until the last is out of reach
+                index = self.tree.query(self.points[pick:pick + 1], k=k, distance_upper_bound=bound)[1].reshape(-1)
+                if index[-1] >= count or k == count:
+                    break
+                k = min(4 * k, count)
+            reached = index[index < count].astype(np.int64)
+        distance = self.distances(np.full(len(reached), pick), reached)
+        return list(zip(reached.tolist(), distance.tolist()))
 
 
 def near_along(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius: float,
@@ -255,25 +279,25 @@ def near_along(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius
     """(m,) bool: candidates surely within `radius` of a kept point, as the kept point before or after them
     on the tile's Z-order `curve` is (with a margin of 1e-9 of the radius, so the tree would say so too).
     On bcts_1+2's tiles that settled 91 % of the fills' candidates, and the covers' distances took 0.8-0.9 s
-    instead of 1.3-1.8 s (one thread), with the same covers."""
+    instead of 1.3-1.8 s (one thread), with the same covers. Worked out for every point of the curve, in
+    curve order (each one's kept neighbours then lie at rising positions: gathers that walk memory in
+    order), then read at the candidates: 0.60 -> 0.46 s on those tiles against gathering at the candidates."""
     position = np.full(len(xyz), -1, dtype=np.int64)
     position[curve] = np.arange(len(curve))
-    is_kept = np.zeros(len(curve) + 1, dtype=np.int64)
-    is_kept[position[kept] + 1] = 1
-    on_curve = curve[np.sort(position[kept])]  # the kept points in curve order
-    at = position[candidates]
-    after = np.cumsum(is_kept)[at]  # kept points before each candidate on the curve: the next one's rank
-    planes = [np.ascontiguousarray(xyz[:, axis]) for axis in range(3)]
-    near = np.zeros(len(candidates), dtype=bool)
+    is_kept = np.zeros(len(curve), dtype=bool)
+    is_kept[position[kept]] = True
+    kept_at = np.flatnonzero(is_kept)  # curve positions of the kept points, ascending
+    before = np.cumsum(is_kept) - is_kept  # kept points strictly before each position: the next one's rank
+    near = np.zeros(len(curve), dtype=bool)
     reach = (radius * (1 - 1e-9)) ** 2
-    for beside in (np.maximum(after - 1, 0), np.minimum(after, len(on_curve) - 1)):
-        open_ = np.flatnonzero(~near)  # the kept point after a candidate is asked only where the one before is far
-        squared = np.zeros(len(open_))
-        for plane in planes:
-            offset = plane[candidates[open_]] - plane[on_curve[beside[open_]]]
+    columns = [xyz[curve, axis] for axis in range(3)]
+    for beside in (kept_at[np.maximum(before - 1, 0)], kept_at[np.minimum(before, len(kept_at) - 1)]):
+        squared = np.zeros(len(curve))
+        for column in columns:
+            offset = column - column[beside]
             squared += offset * offset
-        near[open_] = squared <= reach
-    return near
+        near |= squared <= reach
+    return near[position[candidates]]
 
 
 def nearest_distance(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
