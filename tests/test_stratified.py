@@ -168,6 +168,22 @@ def test_hole_cover_is_the_brute_force_cover_where_a_pick_reaches_many():
     np.testing.assert_array_equal(hole_cover(xyz, kept, candidates, radius), expected)
 
 
+def test_hole_cover_with_nothing_kept_is_farthest_point_sampling_from_the_first_candidate():
+    """With no kept point every gap starts infinite: the first candidate is picked, reaching every other
+    (the path no neighbour table serves), and the cover goes on as plain farthest point sampling."""
+    rng = np.random.default_rng(12)
+    xyz = np.concatenate([rng.uniform(0, 10, (400, 3)), rng.normal(5, 0.02, (40, 3))])
+    candidates = np.arange(3, len(xyz))
+    radius = 2.5
+    gap, picks = np.full(len(candidates), np.inf), []
+    while gap.max() > radius:
+        pick = int(np.argmax(gap))
+        picks.append(candidates[pick])
+        gap = np.minimum(gap, np.sqrt(((xyz[candidates] - xyz[candidates[pick]]) ** 2).sum(-1)))
+    assert picks[0] == 3 and len(picks) > 10
+    np.testing.assert_array_equal(hole_cover(xyz, np.empty(0, dtype=np.int64), candidates, radius), picks)
+
+
 def test_candidates_settled_along_the_curve_are_within_reach_and_the_cover_is_unchanged():
     """near_along settles a candidate by the kept points before and after it on the tile's curve, so the
     tree is asked only for the rest: what it settles must be within the radius, it must settle most of the
