@@ -251,9 +251,9 @@ class Reach:
             offsets = points[self.index[rows]] - points[rows, None, :]
             self.distance[rows] = np.sqrt(np.einsum("mkj,mkj->mk", offsets, offsets))
 
-    def distances(self, origins: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        """(m,) float64 distance from points[origins[i]] to points[targets[i]]."""
-        offsets = self.points[targets] - self.points[origins]
+    def distances(self, pick: int, targets: np.ndarray) -> np.ndarray:
+        """(m,) float64 distance from points[pick] to each of points[targets]."""
+        offsets = self.points[targets] - self.points[pick]
         return np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
 
     def around(self, pick: int, reach: float) -> Iterable[tuple[int, float]]:
@@ -274,7 +274,7 @@ class Reach:
                     break
                 k = min(4 * k, count)
             reached = index[index < count].astype(np.int64)
-        distance = self.distances(np.full(len(reached), pick), reached)
+        distance = self.distances(pick, reached)
         return list(zip(reached.tolist(), distance.tolist()))
 
 
