@@ -29,6 +29,7 @@ class RunConfig:
     tile_size: float = 50.0
     overlap: float = 2.0
     max_tile_points: int = 200_000
+    merge_tile_points: int = 0  # 0: off; else sparse nominal tiles merge (2x2, 4x4 of them) while within this many points
     seam_tolerance: float = 0.01
     workers: int = 2
     memory_limit: str = "2GB"
@@ -71,6 +72,9 @@ class RunConfig:
         for name in ("max_tile_points", "workers", "chunk_points"):
             if int(getattr(self, name)) < 1:
                 raise PipelineError(f"{name.replace('_', '-')} must be at least 1, got {getattr(self, name)!r}")
+        if not 0 <= int(self.merge_tile_points) <= int(self.max_tile_points):
+            raise PipelineError(f"--merge-tile-points must be 0 (off) or up to --max-tile-points "
+                                f"({self.max_tile_points}), got {self.merge_tile_points!r}")
         if parse_size(self.memory_limit, "--memory-limit") < MIN_MEMORY_LIMIT:
             raise PipelineError(f"--memory-limit {self.memory_limit} is below the {MIN_MEMORY_LIMIT // 2**20} MiB a "
                                 "worker needs (one takes about 100 MB at rest, its tile the rest): give it 256MiB "

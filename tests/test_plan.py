@@ -239,3 +239,49 @@ def test_occupied_voxels_count_each_level_as_its_own_grid_would():
     assert occupied_voxels(xyz[:1], sizes).tolist() == [1] * len(sizes)
     with pytest.raises(ValueError, match="double"):
         occupied_voxels(xyz, np.array([1.0, 3.0]))
+
+
+def sparse_beside_dense(seed: int = 8) -> np.ndarray:
+    """A 400 x 400 m scan: a sparse field of 16,000 points (250 per nominal 50 m tile, 4,000 per aligned
+    square of 4 x 4 of them) and a dense 100 x 100 m block of 60,000 points in one corner."""
+    rng = np.random.default_rng(seed)
+    field = rng.uniform([0, 0, 0], [400, 400, 5], size=(16_000, 3))
+    block = rng.uniform([0, 0, 0], [100, 100, 5], size=(60_000, 3))
+    return np.vstack([field, block])
+
+
+def test_sparse_tiles_merge_into_aligned_squares_and_dense_ones_stay_nominal():
+    """--merge-tile-points: aligned 2x2 and 4x4 squares of nominal tiles that hold at most the limit
+    become one tile each; nominal tiles too full for any square stay as before; the cores still partition
+    every point, each inside its tile's rectangle, and 0 gives the plan of before."""
+    xyz = sparse_beside_dense()
+    grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=50)
+    cells, counts = grid.count([xyz])
+    plain = plan_tiles(grid, cells, counts, max_points=20_000)
+    merged = plan_tiles(grid, cells, counts, max_points=20_000, merge_points=10_000)
+    off = plan_tiles(grid, cells, counts, max_points=20_000, merge_points=0)
+    assert off.tiles == plain.tiles and np.array_equal(off.cell_tiles, plain.cell_tiles)
+    assert len(plain.tiles) == 64
+    # the dense block's 4 nominal tiles, the corner square's 3 sparse quarters, the 3 sparse squares
+    sides = sorted((t.i1 - t.i0, t.j1 - t.j0) for t in merged.tiles)
+    assert sides == [(8, 8)] * 4 + [(16, 16)] * 3 + [(32, 32)] * 3
+    assert all(t.count <= 10_000 for t in merged.tiles if t.i1 - t.i0 > 8)
+    owner = merged.tile_of(xyz)
+    np.testing.assert_array_equal(np.bincount(owner, minlength=len(merged.tiles)), [t.count for t in merged.tiles])
+    b = np.array([merged.bounds(t) for t in range(len(merged.tiles))])[owner]
+    top = xyz[:, :2].max(axis=0)
+    inside = ((xyz[:, 0] >= b[:, 0]) & (xyz[:, 1] >= b[:, 1]) & ((xyz[:, 0] < b[:, 2]) | (xyz[:, 0] == top[0]))
+              & ((xyz[:, 1] < b[:, 3]) | (xyz[:, 1] == top[1])))
+    assert inside.all()
+
+
+def test_a_square_over_the_merge_limit_merges_its_quarters_instead():
+    """A 4x4 square over the limit is not merged whole: each 2x2 quarter within it is, in quadtree order."""
+    xyz = sparse_beside_dense()
+    grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=50)
+    merged = plan_tiles(grid, *grid.count([xyz]), max_points=20_000, merge_points=3_000)
+    far = [t for t in merged.tiles if t.i0 >= 32 or t.j0 >= 32]  # the three all-sparse 4x4 squares
+    assert len(far) == 12 and all(t.i1 - t.i0 == 16 and t.j1 - t.j0 == 16 for t in far)
+    assert all(700 <= t.count <= 1_300 for t in far)
+    first = far[:4]  # the first square's quarters, in quadtree order
+    assert [(t.i0, t.j0) for t in first] == [(0, 32), (0, 48), (16, 32), (16, 48)]

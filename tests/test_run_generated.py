@@ -257,3 +257,53 @@ def test_a_sub_cell_over_the_tile_limit_is_named_with_the_tile_size_that_splits_
     crowded = [line for line in notes if "--max-tile-points" in line]
     assert len(crowded) == 1 and "1 sub-cell(s) of tile size / 512 hold more than --max-tile-points (2,000)" in crowded[0]
     assert "--tile-size of about 5.7 m or less" in crowded[0]  # 8 m * sqrt(2,000 / 4,000)
+
+
+def sparse_field_scan(path: Path) -> Path:
+    """20,000 points over 64 x 64 m with a dense 8 x 8 m patch of 10,000: with 8 m tiles, 64 nominal
+    tiles of about 300 points and one of 10,000."""
+    rng = np.random.default_rng(12)
+    xy = np.concatenate([[[0, 0], [64, 64]], rng.uniform(0, 64, size=(19_998, 2)), rng.uniform(0, 8, size=(10_000, 2))])
+    header = laspy.LasHeader(version="1.2", point_format=1)
+    header.scales, header.offsets = [0.001] * 3, [0.0] * 3
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xy[:, 0], xy[:, 1], rng.normal(0, 0.05, len(xy))
+    las.write(path)
+    return path
+
+
+@pytest.mark.parametrize("method", ["fps", "learned"])
+def test_merged_sparse_tiles_keep_the_exact_count_and_any_worker_count_gives_the_same_file(tmp_path, method):
+    """--merge-tile-points: far fewer tiles on a sparse scan, the exact total, no area left empty, and the
+    same bytes from one thread as from a two-worker cluster."""
+    from pipeline.config import RunConfig
+    from pipeline.engine.runner import run_scan
+
+    scan = sparse_field_scan(tmp_path / "field.las")
+    outputs, tiles = [], []
+    for workers, in_process, merge in ((1, 10**9, 5_000), (2, 0, 5_000), (1, 10**9, 0)):
+        out = tmp_path / f"out{workers}-{merge}.las"
+        report = run_scan([scan], out, RunConfig(ratio=0.1, method=method, tile_size=8.0, max_tile_points=20_000,
+                                                 merge_tile_points=merge, workers=workers,
+                                                 in_process_points=in_process))
+        assert report.output_points == 3_000
+        outputs.append(out.read_bytes())
+        tiles.append(report.tiles)
+    assert outputs[0] == outputs[1]
+    assert tiles[2] == 64 and tiles[0] <= 16
+    kept = laspy.read(tmp_path / "out1-5000.las")
+    squares = np.minimum(np.asarray(kept.x) // 8, 7) * 8 + np.minimum(np.asarray(kept.y) // 8, 7)
+    assert len(np.unique(squares)) == 64  # no 8 m square of the field left empty by the merged tiles
+
+
+@pytest.mark.parametrize("value", ["-1", "300000"])
+def test_a_merge_limit_outside_zero_to_the_tile_limit_gets_one_line(tmp_path, value):
+    from click.testing import CliRunner
+
+    from pipeline.apps.cli import cli
+
+    scan = sparse_field_scan(tmp_path / "field.las")
+    result = CliRunner().invoke(cli, ["run", str(scan), "-r", "0.1", "--merge-tile-points", value,
+                                     "-o", str(tmp_path / "out.laz")])
+    assert result.exit_code == 2 and "--merge-tile-points must be 0 (off) or up to --max-tile-points" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "out.laz").exists()

@@ -15,6 +15,7 @@ from typing import Iterable
 import numpy as np
 
 CELLS_PER_TILE = 8       # a nominal tile is 8x8 cells: three quadtree splits before a tile is one cell
+MERGE_SPAN = 4           # sparse nominal tiles merge within aligned squares of 4 x 4 of them (tile size x 4 a side)
 MAX_AXIS_CELLS = 2**31   # per axis, so flat cell ids (i * ny + j) fit int64
 SUB_CELLS = 64           # a crowded cell is split on 64 x 64 sub-cells (tile_size / 512 a side)
 SPLIT = -2               # cell_tiles' mark for a split cell: its sub-cells name the tiles
@@ -198,13 +199,15 @@ class TilePlan:
 
 
 def plan_tiles(grid: DensityGrid, cells: np.ndarray, counts: np.ndarray, max_points: int,
-               sub_counts: np.ndarray | None = None) -> TilePlan:
+               sub_counts: np.ndarray | None = None, merge_points: int = 0) -> TilePlan:
     """Cut the grid into nominal tiles of 8x8 cells, quarter any holding more than max_points, drop empty ones.
 
     cells: (occupied,) sorted flat cell ids; counts: their points. Only occupied nominal tiles are visited,
     in row-major order, so the work and memory follow the occupied area, not the extent. A single cell
     still over max_points is quartered in turn on its sub-cells, where `sub_counts` gives them:
-    (crowded, SUB_CELLS, SUB_CELLS) points per sub-cell of each cell in crowded_cells(cells, counts, max_points)."""
+    (crowded, SUB_CELLS, SUB_CELLS) points per sub-cell of each cell in crowded_cells(cells, counts, max_points).
+    With `merge_points`, sparse nominal tiles are merged first (merged_blocks): a tile has fixed costs (its
+    task, its loads, its trees and files) that a few thousand points do not repay."""
     nx, ny = grid.shape
     cells, counts = np.asarray(cells, dtype=np.int64), np.asarray(counts, dtype=np.int64)
     keep = counts > 0
@@ -217,7 +220,18 @@ def plan_tiles(grid: DensityGrid, cells: np.ndarray, counts: np.ndarray, max_poi
     tiles: list[TileRect] = []
     cell_tiles = np.full(len(cells), -1, dtype=np.int32)
     sub_tiles = np.full((len(crowded), SUB_CELLS, SUB_CELLS), -1, dtype=np.int32)
-    for members in np.split(order, starts[1:]):
+    block_members = np.split(order, starts[1:]) if len(order) else []
+    block_ij = np.array([(i[m[0]] // CELLS_PER_TILE, j[m[0]] // CELLS_PER_TILE) for m in block_members], dtype=np.int64)
+    for group, (bi0, bj0, side) in merged_blocks(block_ij, np.array([counts[m].sum() for m in block_members],
+                                                                     dtype=np.int64), merge_points):
+        if side > 1:  # one tile of whole nominal tiles: the aligned square of them, clipped to the grid
+            members = np.concatenate([block_members[b] for b in group])
+            cell_tiles[members] = len(tiles)
+            tiles.append(TileRect(bi0 * CELLS_PER_TILE, min((bi0 + side) * CELLS_PER_TILE, nx),
+                                  bj0 * CELLS_PER_TILE, min((bj0 + side) * CELLS_PER_TILE, ny),
+                                  int(counts[members].sum()), len(members)))
+            continue
+        members = block_members[group[0]]
         i0, j0 = int(i[members[0]] // CELLS_PER_TILE * CELLS_PER_TILE), int(j[members[0]] // CELLS_PER_TILE * CELLS_PER_TILE)
         local = np.zeros((min(CELLS_PER_TILE, nx - i0), min(CELLS_PER_TILE, ny - j0)), dtype=np.int64)
         local[i[members] - i0, j[members] - j0] = counts[members]
@@ -233,6 +247,35 @@ def plan_tiles(grid: DensityGrid, cells: np.ndarray, counts: np.ndarray, max_poi
             tiles.append(tile)
     return TilePlan(grid, tuple(tiles), cells, cell_tiles, crowded, sub_tiles,
                     split_reach(grid, sub_counts) if len(crowded) else np.empty(0))
+
+
+def merged_blocks(block_ij: np.ndarray, block_counts: np.ndarray,
+                  merge_points: int) -> list[tuple[list[int], tuple[int, int, int]]]:
+    """Groups of nominal tiles (positions in `block_ij`: (b, 2) nominal-tile rows and columns in row-major
+    order, with their (b,) point counts), each group one tile, in tile order, with the aligned square of
+    nominal tiles it fills (first row, first column, side). With merge_points 0, each nominal tile on its
+    own (side 1), in row-major order. Otherwise, within aligned squares of MERGE_SPAN x MERGE_SPAN nominal
+    tiles (row-major), the largest aligned quarter holding at most merge_points points is one group, in
+    quadtree order; a nominal tile no quarter takes stays on its own, quartered under max_points as before."""
+    if merge_points <= 0 or len(block_ij) == 0:
+        return [([b], (int(bi), int(bj), 1)) for b, (bi, bj) in enumerate(block_ij.tolist())]
+    at = {(bi, bj): b for b, (bi, bj) in enumerate(block_ij.tolist())}
+    groups: list[tuple[list[int], tuple[int, int, int]]] = []
+
+    def quarter(i0: int, j0: int, side: int) -> None:
+        inside = [at[(i, j)] for i in range(i0, i0 + side) for j in range(j0, j0 + side) if (i, j) in at]
+        if not inside:
+            return
+        if side == 1 or block_counts[inside].sum() <= merge_points:
+            groups.append((inside, (i0, j0, side)))
+            return
+        half = side // 2
+        for di, dj in ((0, 0), (0, half), (half, 0), (half, half)):
+            quarter(i0 + di, j0 + dj, half)
+
+    for si, sj in sorted({(bi // MERGE_SPAN, bj // MERGE_SPAN) for bi, bj in at}):
+        quarter(si * MERGE_SPAN, sj * MERGE_SPAN, MERGE_SPAN)
+    return groups
 
 
 def split_cell(cell: TileRect, sub_counts: np.ndarray, max_points: int, sub_tiles: np.ndarray,

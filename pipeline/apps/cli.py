@@ -93,6 +93,9 @@ def cli() -> None:
 @click.option("--tile-size", type=float, default=None, help="Nominal tile edge in metres. [default: 50]")
 @click.option("--overlap", type=float, default=None, help="Halo width around each tile in metres (into a split crowded cell, at most 64 of its point spacings). [default: 2]")
 @click.option("--max-tile-points", type=int, default=None, help="Split tiles with more core points. [default: 200000]")
+@click.option("--merge-tile-points", type=int, default=None,
+              help="Merge sparse tiles (2x2 or 4x4 of them) while the merged tile holds at most this many "
+                   "points: fewer, larger tiles on sparse scans. [default: 0, off]")
 @click.option("--seam-tolerance", type=float, default=None,
               help="Kept points of different tiles closer than this (m) keep one. [default: 0.01]")
 @click.option("--workers", "-w", type=int, default=None, help="Dask worker processes. [default: 2]")
@@ -115,7 +118,7 @@ def cli() -> None:
 def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | None, keep_class: str | None,
                 thin_class: str | None, output: Path | None, method: str | None, params: tuple[str, ...],
                 tile_size: float | None, overlap: float | None, max_tile_points: int | None,
-                seam_tolerance: float | None, workers: int | None, memory_limit: str | None, config: str | None,
+                merge_tile_points: int | None, seam_tolerance: float | None, workers: int | None, memory_limit: str | None, config: str | None,
                 seed: int | None, scratch: Path | None, scheduler: str | None, overwrite: bool,
                 allow_geographic: bool, quiet: bool, verbose: bool, log_json: bool, mesh: bool) -> None:
     """Simplify INPUTS (LAS/LAZ/COPC/PLY files that together form one scan) to one output."""
@@ -126,7 +129,8 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
             raise PipelineError("give --ratio (the fraction of points to keep) or --levels")
         settings = build_config(config, ratio=ratio, method=method, method_parameters=parse_parameters(params),
                                 tile_size=tile_size, overlap=overlap,
-                                max_tile_points=max_tile_points, seam_tolerance=seam_tolerance, workers=workers,
+                                max_tile_points=max_tile_points, merge_tile_points=merge_tile_points,
+                                seam_tolerance=seam_tolerance, workers=workers,
                                 memory_limit=memory_limit, seed=seed, allow_geographic=allow_geographic or None,
                                 levels=parse_list(levels, "--levels", float),
                                 keep_classes=parse_list(keep_class, "--keep-class", int),

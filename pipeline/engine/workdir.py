@@ -22,7 +22,7 @@ from pipeline.config import RunConfig
 from pipeline.io.atomic import atomic_output
 
 MANIFEST = "manifest.json"
-RESULT_SETTINGS = ("ratio", "method", "tile_size", "overlap", "max_tile_points", "seam_tolerance",
+RESULT_SETTINGS = ("ratio", "method", "tile_size", "overlap", "max_tile_points", "merge_tile_points", "seam_tolerance",
                    "chunk_points", "seed", "keep_classes", "thin_classes", "levels")  # the settings that change the output; workers and memory do not
 
 
