@@ -2,7 +2,7 @@
 
     python bench/quality.py [--scans autzen_trim.laz,street] [--ratios 0.2,0.1,0.05]
                             [--methods learned,stratified,fps,random,voxel] [--peer] [--out bench/results]
-                            [--name quality]
+                            [--name quality] [--config FILE]
 
 For each scan and ratio, every method runs through `pipeline.run` (tiled, 2 workers, one cluster),
 and so does FPS over the whole scan as one tile ("fps untiled", the coverage reference) and, with
@@ -216,8 +216,9 @@ def object_view(ratio: float, xyz: np.ndarray, masks: dict[str, np.ndarray], pic
 
 
 def run_bench(scans: list[str], ratios: list[float], methods: list[str], peer: bool, data: Path, out: Path,
-              name: str = "quality") -> None:
-    """Run everything, print and write the tables, draw the pictures."""
+              name: str = "quality", config: str | None = None) -> None:
+    """Run everything, print and write the tables, draw the pictures; `config`: a preset or TOML file the
+    pipeline runs take their settings from (as `pipeline run --config`)."""
     pictures = out / "quality"
     pictures.mkdir(parents=True, exist_ok=True)
     rows: list[Row] = []
@@ -234,7 +235,7 @@ def run_bench(scans: list[str], ratios: list[float], methods: list[str], peer: b
                 picks: dict[str, np.ndarray] = {}
                 for method in methods:
                     output = work / f"{method}.las"
-                    run_scan([path], output, build_config(ratio=ratio, method=method, workers=2), overwrite=True,
+                    run_scan([path], output, build_config(config, ratio=ratio, method=method, workers=2), overwrite=True,
                              client=client)
                     picks[method] = kept_indices(output, las)
                 picks[UNTILED] = untiled_fps(xyz, count)
@@ -297,9 +298,10 @@ def main() -> None:
     parser.add_argument("--peer", action="store_true", help="add CloudCompare's spatial subsampling (Debian cloudcompare)")
     parser.add_argument("--out", type=Path, default=HERE / "results")
     parser.add_argument("--name", default="quality", help="stem of the .md and .json written to --out")
+    parser.add_argument("--config", default=None, help="preset or TOML file for the pipeline runs (as pipeline run --config)")
     args = parser.parse_args()
     run_bench(args.scans.split(","), [float(r) for r in args.ratios.split(",")], args.methods.split(","),
-              args.peer, args.data, args.out, args.name)
+              args.peer, args.data, args.out, args.name, args.config)
 
 
 if __name__ == "__main__":
