@@ -194,11 +194,11 @@ def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius
         open_ = np.arange(len(candidates)) if curve is None else np.flatnonzero(~near_along(xyz, kept, candidates,
                                                                                              radius, curve))
         distance[open_] = nearest_distance(xyz[kept], xyz[candidates[open_]])
-    far = candidates[distance > radius]
+    is_far = distance > radius
+    far = candidates[is_far]
     if len(far) == 0:
         return far.astype(np.int64)
-    points = np.ascontiguousarray(xyz[far], dtype=np.float64)
-    return far[farthest_continued(points, distance[distance > radius], radius)]
+    return far[farthest_continued(np.ascontiguousarray(xyz[far], dtype=np.float64), distance[is_far], radius)]
 
 
 def farthest_continued(points: np.ndarray, gap: np.ndarray, radius: float) -> np.ndarray:
@@ -233,8 +233,8 @@ def farthest_continued(points: np.ndarray, gap: np.ndarray, radius: float) -> np
 class Reach:
     """The far points (n, 3) a pick of the hole cover can bring closer: a table of every point's
     REACH_NEIGHBOURS nearest and their distances (one batched pykdtree query; a pick reaches about 4 on real
-    scans), each pick's row read out as Python numbers, and the tree for the rare pick whose reach goes past its table (218 of bcts_1+2's
-    25k picks). Distances are sqrt(dx^2 + dy^2 + dz^2) summed in that order, as numpy's einsum sums them
+    scans), each pick's row read out as Python numbers, and the tree for the rare pick whose reach goes
+    past its table (218 of bcts_1+2's 25k picks). Distances are sqrt(dx^2 + dy^2 + dz^2) summed in that order, as numpy's einsum sums them
     (pykdtree's own differ from it by an ulp in 9 % of pairs), so the cover is the same however a point is
     reached (the same sums in a batch of rows as one row at a time). The table holds 192 bytes per far point."""
 
@@ -242,9 +242,8 @@ class Reach:
         self.points = points
         self.tree = KDTree(points)
         self.k = min(REACH_NEIGHBOURS, len(points))
-        index = self.tree.query(points, k=self.k)[1]  # its distances freed at once: ours are summed below
-        self.index = index.reshape(len(points), self.k).astype(np.int32)
-        del index
+        # pykdtree's distances are dropped at once: ours are summed below
+        self.index = self.tree.query(points, k=self.k)[1].reshape(len(points), self.k).astype(np.int32)
         self.distance = np.empty(self.index.shape)
         for start in range(0, len(points), FRAME_POINTS):  # (m, k, 3) offsets a batch at a time
             rows = slice(start, start + FRAME_POINTS)

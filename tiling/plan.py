@@ -221,9 +221,10 @@ def plan_tiles(grid: DensityGrid, cells: np.ndarray, counts: np.ndarray, max_poi
     cell_tiles = np.full(len(cells), -1, dtype=np.int32)
     sub_tiles = np.full((len(crowded), SUB_CELLS, SUB_CELLS), -1, dtype=np.int32)
     block_members = np.split(order, starts[1:]) if len(order) else []
-    block_ij = np.array([(i[m[0]] // CELLS_PER_TILE, j[m[0]] // CELLS_PER_TILE) for m in block_members], dtype=np.int64)
-    for group, (bi0, bj0, side) in merged_blocks(block_ij, np.array([counts[m].sum() for m in block_members],
-                                                                     dtype=np.int64), merge_points):
+    first = order[starts]  # a cell of each nominal tile
+    block_ij = np.column_stack([i[first] // CELLS_PER_TILE, j[first] // CELLS_PER_TILE])
+    block_counts = np.add.reduceat(counts[order], starts) if len(order) else np.empty(0, dtype=np.int64)
+    for group, (bi0, bj0, side) in merged_blocks(block_ij, block_counts, merge_points):
         if side > 1:  # one tile of whole nominal tiles: the aligned square of them, clipped to the grid
             members = np.concatenate([block_members[b] for b in group])
             cell_tiles[members] = len(tiles)
@@ -232,7 +233,7 @@ def plan_tiles(grid: DensityGrid, cells: np.ndarray, counts: np.ndarray, max_poi
                                   int(counts[members].sum()), len(members)))
             continue
         members = block_members[group[0]]
-        i0, j0 = int(i[members[0]] // CELLS_PER_TILE * CELLS_PER_TILE), int(j[members[0]] // CELLS_PER_TILE * CELLS_PER_TILE)
+        i0, j0 = bi0 * CELLS_PER_TILE, bj0 * CELLS_PER_TILE
         local = np.zeros((min(CELLS_PER_TILE, nx - i0), min(CELLS_PER_TILE, ny - j0)), dtype=np.int64)
         local[i[members] - i0, j[members] - j0] = counts[members]
         for rect in split_block(local, max_points):

@@ -118,7 +118,8 @@ def cli() -> None:
 def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | None, keep_class: str | None,
                 thin_class: str | None, output: Path | None, method: str | None, params: tuple[str, ...],
                 tile_size: float | None, overlap: float | None, max_tile_points: int | None,
-                merge_tile_points: int | None, seam_tolerance: float | None, workers: int | None, memory_limit: str | None, config: str | None,
+                merge_tile_points: int | None, seam_tolerance: float | None, workers: int | None,
+                memory_limit: str | None, config: str | None,
                 seed: int | None, scratch: Path | None, scheduler: str | None, overwrite: bool,
                 allow_geographic: bool, quiet: bool, verbose: bool, log_json: bool, mesh: bool) -> None:
     """Simplify INPUTS (LAS/LAZ/COPC/PLY files that together form one scan) to one output."""
