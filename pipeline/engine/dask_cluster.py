@@ -5,7 +5,9 @@ from __future__ import annotations
 import logging
 import os
 import socket
+import traceback
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Iterator
 from urllib.parse import urlsplit
 
@@ -106,9 +108,26 @@ def probe_scheduler(scheduler: str, timeout_s: float) -> None:
 
 def quiet_dask_logs() -> None:
     """Keep Dask's own logs to real errors: a failed task is reported once, by us, as one line."""
+    tornado_errors = logging.getLogger("tornado.application")
+    if not any(isinstance(each, SyncCancelRace) for each in tornado_errors.filters):
+        tornado_errors.addFilter(SyncCancelRace())
     logging.getLogger("distributed").setLevel(logging.ERROR)
     logging.getLogger("distributed.worker").setLevel(logging.CRITICAL)
     logging.getLogger("distributed.scheduler").setLevel(logging.CRITICAL)  # "N workers died running task X": map_tasks says it
+
+
+class SyncCancelRace(logging.Filter):
+    """Drops the NameError traceback that distributed (2026.8.0) logs when Ctrl-C or SIGTERM lands in a
+    blocking client call before its coroutine has started: `sync`'s `cancel` callback then reads a
+    variable not yet bound. There was nothing to cancel yet and the run unwinds and closes the cluster
+    anyway, but the traceback would break the one-line message a stopped run prints."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        error = record.exc_info[1] if record.exc_info else None
+        if not isinstance(error, NameError) or error.__traceback__ is None:
+            return True
+        last = traceback.extract_tb(error.__traceback__)[-1]
+        return not (last.name == "cancel" and Path(last.filename).parts[-2:] == ("distributed", "utils.py"))
 
 
 class WorkerSettings(WorkerPlugin):
