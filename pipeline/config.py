@@ -29,7 +29,8 @@ class RunConfig:
     tile_size: float = 50.0
     overlap: float = 2.0
     max_tile_points: int = 200_000
-    merge_tile_points: int = 0  # 0: off; else sparse nominal tiles merge (2x2, 4x4 of them) while within this many points
+    merge_tile_points: int = 50_000  # sparse nominal tiles merge (2x2, 4x4 of them) while within this many points
+                                     # (at most max_tile_points: see merge_limit); 0: off
     seam_tolerance: float = 0.01
     workers: int = 2
     memory_limit: str = "2GB"
@@ -47,6 +48,12 @@ class RunConfig:
     def simplifier(self) -> Method:
         """The method with its parameters, as the run's tiles call it (made once per settings object)."""
         return get_simplifier(self.method, **dict(self.method_parameters))
+
+    @property
+    def merge_limit(self) -> int:
+        """The points a merged tile may hold: --merge-tile-points, but never more than --max-tile-points (so a
+        smaller --max-tile-points, given for memory, bounds merged tiles too, without naming both)."""
+        return min(int(self.merge_tile_points), int(self.max_tile_points))
 
     def in_unit(self, metres_per_unit: float) -> "RunConfig":
         """The same settings with the lengths (tile size, overlap, seam tolerance: metres) in a scan unit."""
@@ -72,9 +79,8 @@ class RunConfig:
         for name in ("max_tile_points", "workers", "chunk_points"):
             if int(getattr(self, name)) < 1:
                 raise PipelineError(f"{name.replace('_', '-')} must be at least 1, got {getattr(self, name)!r}")
-        if not 0 <= int(self.merge_tile_points) <= int(self.max_tile_points):
-            raise PipelineError(f"--merge-tile-points must be 0 (off) or up to --max-tile-points "
-                                f"({self.max_tile_points}), got {self.merge_tile_points!r}")
+        if int(self.merge_tile_points) < 0:
+            raise PipelineError(f"--merge-tile-points must be 0 (off) or more, got {self.merge_tile_points!r}")
         if parse_size(self.memory_limit, "--memory-limit") < MIN_MEMORY_LIMIT:
             raise PipelineError(f"--memory-limit {self.memory_limit} is below the {MIN_MEMORY_LIMIT // 2**20} MiB a "
                                 "worker needs (one takes about 100 MB at rest, its tile the rest): give it 256MiB "

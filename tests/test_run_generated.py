@@ -296,14 +296,27 @@ def test_merged_sparse_tiles_keep_the_exact_count_and_any_worker_count_gives_the
     assert len(np.unique(squares)) == 64  # no 8 m square of the field left empty by the merged tiles
 
 
-@pytest.mark.parametrize("value", ["-1", "300000"])
-def test_a_merge_limit_outside_zero_to_the_tile_limit_gets_one_line(tmp_path, value):
+def test_a_negative_merge_limit_gets_one_line(tmp_path):
     from click.testing import CliRunner
 
     from pipeline.apps.cli import cli
 
     scan = sparse_field_scan(tmp_path / "field.las")
-    result = CliRunner().invoke(cli, ["run", str(scan), "-r", "0.1", "--merge-tile-points", value,
+    result = CliRunner().invoke(cli, ["run", str(scan), "-r", "0.1", "--merge-tile-points", "-1",
                                      "-o", str(tmp_path / "out.laz")])
-    assert result.exit_code == 2 and "--merge-tile-points must be 0 (off) or up to --max-tile-points" in result.stderr
+    assert result.exit_code == 2 and "--merge-tile-points must be 0 (off) or more" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1 and not (tmp_path / "out.laz").exists()
+
+
+def test_the_default_merge_limit_is_bounded_by_a_smaller_tile_limit(tmp_path):
+    """Merging is on by default (50,000 points); --max-tile-points below that bounds merged tiles too, so a
+    limit given for memory needs no second flag: the field's 4x4 squares (about 7,500 points) do not merge
+    whole under a 2,000-point limit, its 2x2 quarters (about 1,900) do."""
+    from pipeline.config import RunConfig
+    from pipeline.engine.runner import run_scan
+
+    scan = sparse_field_scan(tmp_path / "field.las")
+    config = RunConfig(ratio=0.1, method="fps", tile_size=8.0, max_tile_points=2_000, in_process_points=10**9)
+    assert config.merge_tile_points == 50_000 and config.merge_limit == 2_000
+    report = run_scan([scan], tmp_path / "out.las", config)
+    assert report.output_points == 3_000 and 4 < report.tiles < 64

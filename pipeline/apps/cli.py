@@ -95,7 +95,8 @@ def cli() -> None:
 @click.option("--max-tile-points", type=int, default=None, help="Split tiles with more core points. [default: 200000]")
 @click.option("--merge-tile-points", type=int, default=None,
               help="Merge sparse tiles (2x2 or 4x4 of them) while the merged tile holds at most this many "
-                   "points: fewer, larger tiles on sparse scans. [default: 0, off]")
+                   "points (and at most --max-tile-points): fewer, larger tiles on sparse scans; 0 is off. "
+                   "[default: 50000]")
 @click.option("--seam-tolerance", type=float, default=None,
               help="Kept points of different tiles closer than this (m) keep one. [default: 0.01]")
 @click.option("--workers", "-w", type=int, default=None, help="Dask worker processes. [default: 2]")

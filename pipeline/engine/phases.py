@@ -59,7 +59,7 @@ def bucket_scan(client: Client | Executor, scan: Scan, pieces: list[Piece], work
     crowded = crowded_cells(cells, counts, config.max_tile_points)
     copies = sort_crowded_cells(client, crowded, pieces, buckets, grid, work, config, rule, progress)
     sub_counts = sum(c.counts for c in copies.values()) if copies else None
-    plan = plan_tiles(grid, cells, counts, config.max_tile_points, sub_counts, config.merge_tile_points)
+    plan = plan_tiles(grid, cells, counts, config.max_tile_points, sub_counts, config.merge_limit)
     whole = plan.per_tile(protected, sum(c.protected for c in copies.values()) if copies else None)  # plan.cells == cells
     boxes = cell_boxes([b.cells for b in buckets], grid.shape[1])
     slices: list[list[Slice]] = []
