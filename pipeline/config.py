@@ -52,7 +52,10 @@ class RunConfig:
     @property
     def merge_limit(self) -> int:
         """The points a merged tile may hold: --merge-tile-points, but never more than --max-tile-points (so a
-        smaller --max-tile-points, given for memory, bounds merged tiles too, without naming both)."""
+        smaller --max-tile-points, given for memory, bounds merged tiles too, without naming both), and 0 (no
+        merging) for a method whose picks depend on a tile's extent (the paper's network)."""
+        if self.simplifier.sees_tile_extent:
+            return 0
         return min(int(self.merge_tile_points), int(self.max_tile_points))
 
     def in_unit(self, metres_per_unit: float) -> "RunConfig":

@@ -70,9 +70,9 @@ def record_bytes(points: np.ndarray, skip: int = 0) -> np.ndarray:
 def test_pipeline_run_learned_keeps_every_attribute(tmp_path, method):
     source_path = shared_file("autzen_trim.las")
     out = tmp_path / "learned.las"
-    # 60-ft tiles (autzen is in feet), unmerged: the paper's network sees a tile in its unit ball, so how far
-    # refinement moves a point grows with the tile
-    pipeline.run(source_path, out, ratio=0.05, method=method, workers=2, tile_size=18.288, merge_tile_points=0)
+    # 60-ft tiles (autzen is in feet), never merged for the paper's network (Method.sees_tile_extent): it sees a
+    # tile in its unit ball, so how far refinement moves a point grows with the tile
+    pipeline.run(source_path, out, ratio=0.05, method=method, workers=2, tile_size=18.288)
     source, result = laspy.read(source_path), laspy.read(out)
     assert len(result.points) == int(np.floor(0.05 * len(source.points) + 0.5))
     # X, Y, Z are the first 12 bytes of every point format: unmoved picks are whole source records,

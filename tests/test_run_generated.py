@@ -318,5 +318,6 @@ def test_the_default_merge_limit_is_bounded_by_a_smaller_tile_limit(tmp_path):
     scan = sparse_field_scan(tmp_path / "field.las")
     config = RunConfig(ratio=0.1, method="fps", tile_size=8.0, max_tile_points=2_000, in_process_points=10**9)
     assert config.merge_tile_points == 50_000 and config.merge_limit == 2_000
+    assert RunConfig(method="paper").merge_limit == 0 == RunConfig(method="paper-refined").merge_limit
     report = run_scan([scan], tmp_path / "out.las", config)
     assert report.output_points == 3_000 and 4 < report.tiles < 64
