@@ -285,3 +285,29 @@ def test_a_square_over_the_merge_limit_merges_its_quarters_instead():
     assert all(700 <= t.count <= 1_300 for t in far)
     first = far[:4]  # the first square's quarters, in quadtree order
     assert [(t.i0, t.j0) for t in first] == [(0, 32), (0, 48), (16, 32), (16, 48)]
+
+
+@pytest.mark.parametrize("kind", ["quartered", "crowded", "merged"])
+def test_a_tiles_core_mask_is_its_share_of_tile_of(kind):
+    """core_mask tests a tile of whole cells against its rectangle instead of looking each cell up: on
+    quartered, crowded (split cells beside whole ones) and merged plans, with points on cell edges and on
+    the far edges of the extent, it must give exactly tile_of(xyz) == tile."""
+    rng = np.random.default_rng(7)
+    if kind == "crowded":
+        xyz = np.vstack([rng.uniform([0, 0, 0], [100, 100, 5], (20_000, 3)),
+                         rng.normal([40.2, 60.2, 1], [0.2, 0.2, 0.5], (20_000, 3))])
+    else:
+        xyz = clustered_points(60_000) if kind == "quartered" else sparse_beside_dense()
+    grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=25 if kind != "merged" else 50)
+    edges = np.array([[grid.origin[0] + k * grid.cell, grid.origin[1] + (k % 7) * grid.cell, 0] for k in range(40)])
+    xyz = np.vstack([xyz, edges, [xyz.max(0), xyz.min(0)]])
+    cells, counts = grid.count([xyz])
+    if kind == "crowded":
+        plan = plan_tiles(grid, cells, counts, 2_000, grid.sub_count(xyz, crowded_cells(cells, counts, 2_000)))
+        assert any(t.sub is not None for t in plan.tiles) and any(t.sub is None for t in plan.tiles)
+    else:
+        plan = plan_tiles(grid, cells, counts, 2_000 if kind == "quartered" else 20_000,
+                          merge_points=10_000 if kind == "merged" else 0)
+    owner = plan.tile_of(xyz)
+    for tile in range(len(plan.tiles)):
+        np.testing.assert_array_equal(plan.core_mask(tile, xyz), owner == tile)

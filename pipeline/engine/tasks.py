@@ -99,14 +99,24 @@ def load_tile(store_path: str, slices: tuple[Slice, ...], cache_bytes: int, plan
     indices of the core points `rule` keeps whole: they stay in the tile as context, outside its core."""
     store = TileStore.reader(Path(store_path))
     scales, offsets = stored_scaling(store)
+    kept_xyz: list[np.ndarray] = []
+    kept_core: list[np.ndarray] = []
 
     def seen(points: StoredPoints) -> np.ndarray:
+        """Core and halo of a batch of rows; their coordinates and core mask are kept too, in the order the
+        store joins the kept rows, so neither is computed twice."""
         xyz = grid_xyz(points.records, scales, offsets)
-        return plan.halo_mask(plan.core_mask(tile_id, xyz), tile_id, xyz, overlap)
+        core = plan.core_mask(tile_id, xyz)
+        keep = plan.halo_mask(core, tile_id, xyz, overlap)
+        kept_xyz.append(xyz[keep])
+        kept_core.append(core[keep])
+        return keep
 
     records = store.load(slices, cache_bytes, keep=seen).records  # a crowded neighbour is never held whole
-    xyz = grid_xyz(records, scales, offsets)
-    core = plan.core_mask(tile_id, xyz)
+    xyz = np.concatenate(kept_xyz) if kept_xyz else np.empty((0, 3))
+    core = np.concatenate(kept_core) if kept_core else np.empty(0, dtype=bool)
+    if len(xyz) != len(records):
+        raise AssertionError(f"tile {tile_id}: {len(records)} rows kept but {len(xyz)} coordinates")
     protected = core & rule.protected(records)
     core &= ~protected
     centre = xyz[core | protected].mean(axis=0) if (core | protected).any() else np.zeros(3)
