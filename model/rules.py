@@ -22,6 +22,14 @@ def grid_xyz(records: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> np
     return xyz
 
 
+def take_records(records: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """records[index] for (n,) structured LAS records, each record's bytes gathered whole: the structured
+    array's own fancy index copies field by field (300k of bcts_1's records: 84-113 ms, this way 12-38)."""
+    width = records.dtype.itemsize
+    source = np.ascontiguousarray(records).view(np.uint8).reshape(len(records), width)
+    return np.take(source, index, axis=0).view(records.dtype).reshape(-1)
+
+
 def grid_ints(xyz: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """(n, 3) float64 integers of the grid steps nearest to (n, 3) coordinates (before any int32 check)."""
     return np.rint((xyz - offsets) / scales)

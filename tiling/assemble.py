@@ -12,7 +12,7 @@ from typing import Callable, Iterator
 
 import numpy as np
 
-from model.rules import column_max, column_min, grid_ints, grid_xyz, interleaved, spread_order
+from model.rules import column_max, column_min, grid_ints, grid_xyz, interleaved, spread_order, take_records
 from tiling.plan import TilePlan
 from tiling.stitch import SeamBand, band_mask, first_accepted, resolve_seams
 
@@ -74,9 +74,10 @@ def level_parts(plan: TilePlan, results: dict[int, str], budgets: np.ndarray, le
         result = TileResult.load(path)
         rejected = rejections.get(tile_id, np.empty(0, dtype=np.int64))
         chosen = first_accepted(len(result.records), int(budgets[tile_id]), rejected)[:int(level_budgets[tile_id])]
-        records = np.concatenate([moved_to(result.records[chosen], result.xyz[chosen], scales, offsets), result.whole])
+        records = np.concatenate([moved_to(take_records(result.records, chosen), result.xyz[chosen], scales, offsets),
+                                  result.whole])
         order = interleaved(np.arange(len(chosen)), len(chosen) + spread_order(result.whole_xyz))
-        records = records[order]
+        records = take_records(records, order)
         yield TilePart(tile_id, covering(plan.bounds(tile_id), grid_xyz(records, scales, offsets)), records)
 
 

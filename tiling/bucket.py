@@ -32,7 +32,7 @@ def bucket_by_cell(records: np.ndarray, xyz: np.ndarray, first: int, grid: Densi
     order = np.argsort(cell, kind="stable")
     sorted_cells = cell[order]
     starts = np.flatnonzero(np.diff(sorted_cells, prepend=-1))
-    return CellBuckets(encode_rows(records[order], first + order), sorted_cells[starts],
+    return CellBuckets(encode_rows(records, first + np.arange(len(records)), order), sorted_cells[starts],
                        np.append(starts, len(sorted_cells)))
 
 
@@ -68,7 +68,7 @@ def bucket_by_sub_cell(records: np.ndarray, index: np.ndarray, xyz: np.ndarray, 
     starts = np.searchsorted(bucket[order], np.arange(slots + 1))
     flat = (cell * SUB_CELLS + si) * SUB_CELLS + sj
     kept_whole = np.bincount(flat[protected], minlength=slots).reshape(len(crowded), SUB_CELLS, SUB_CELLS)
-    return encode_rows(records[order], index[order]), SubCellIndex(starts, kept_whole)
+    return encode_rows(records, index, order), SubCellIndex(starts, kept_whole)
 
 
 def z_order(si: np.ndarray, sj: np.ndarray) -> np.ndarray:

@@ -100,10 +100,18 @@ def joined(parts: Sequence[StoredPoints]) -> StoredPoints:
     return StoredPoints(np.concatenate([p.records for p in parts]), np.concatenate([p.index for p in parts]))
 
 
-def encode_rows(records: np.ndarray, index: np.ndarray) -> np.ndarray:
-    """Records plus global index, one uint8 row per point."""
-    rows = np.empty((len(records), records.dtype.itemsize + TAIL), dtype=np.uint8)
-    rows[:, :-TAIL] = np.ascontiguousarray(records).view(np.uint8).reshape(len(records), records.dtype.itemsize)
+def encode_rows(records: np.ndarray, index: np.ndarray, order: np.ndarray | None = None) -> np.ndarray:
+    """Records plus global index, one uint8 row per point; with `order`, the rows of records[order] and
+    index[order], each record's bytes gathered straight into its row: a structured array's own fancy index
+    copies field by field (a 500k-point piece of bcts bucketed in 114-194 ms that way, 33-55 ms this way)."""
+    width = records.dtype.itemsize
+    source = np.ascontiguousarray(records).view(np.uint8).reshape(len(records), width)
+    rows = np.empty((len(records), width + TAIL), dtype=np.uint8)
+    if order is None:
+        rows[:, :-TAIL] = source
+    else:
+        np.take(source, order, axis=0, out=rows[:, :-TAIL], mode="clip")  # clip: no buffered copy of `out`
+        index = np.asarray(index)[order]
     rows[:, -TAIL:] = np.ascontiguousarray(index, dtype="<i8").view(np.uint8).reshape(len(index), TAIL)
     return rows
 

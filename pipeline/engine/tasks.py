@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from model.methods import Fill, Method
-from model.rules import grid_xyz, kept_count
+from model.rules import grid_xyz, kept_count, take_records
 from model.selection import FillContext, FillLoss, Selection, Tile
 from model.stratified import pick_spacings
 from pipeline.engine.classes import ClassRule, class_histogram
@@ -88,8 +88,9 @@ def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     count = min(job.budget + job.reserve, tile.core_count)
     picked = job.simplifier(tile, count) if count else Selection.of(tile, np.empty(0, np.int64))
     write_atomically(Path(job.result_path),
-                     lambda tmp: save_npz(tmp, records=records[picked.indices], xyz=picked.xyz + tile.centre,
-                                          whole=records[whole], whole_xyz=tile.xyz[whole] + tile.centre))
+                     lambda tmp: save_npz(tmp, records=take_records(records, picked.indices),
+                                          xyz=picked.xyz + tile.centre, whole=take_records(records, whole),
+                                          whole_xyz=tile.xyz[whole] + tile.centre))
     return TileOutcome(job.tile_id, len(tile.xyz), len(picked.indices) + len(whole), time.perf_counter() - started)
 
 
