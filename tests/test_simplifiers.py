@@ -74,6 +74,17 @@ def test_voxel_keeps_one_point_per_voxel_nearest_its_centre():
         assert np.linalg.norm(point - centre) <= np.linalg.norm(members - centre, axis=1).min() + 1e-12
 
 
+def test_voxel_representative_is_the_nearest_and_of_equally_near_ones_the_first():
+    """Per voxel, in key order, the point nearest its centre; a tie goes to the earlier point (what a
+    stable lexsort by key and distance gave)."""
+    from model.baselines import _voxel_representatives, axis_columns
+
+    points = np.array([[1.7, 0.5, 0.5], [0.75, 0.5, 0.5], [0.25, 0.5, 0.5], [1.45, 0.5, 0.5], [0.5, 0.5, 0.9]])
+    bounds = (points.min(axis=0), points.max(axis=0))
+    assert _voxel_representatives(axis_columns(points), bounds, 1.0).tolist() == [1, 3]
+    assert _voxel_representatives(axis_columns(points[:0]), bounds, 1.0).tolist() == []
+
+
 def test_voxel_tops_up_when_points_are_duplicates():
     xyz = np.repeat(np.random.default_rng(0).uniform(0, 1, size=(50, 3)), 4, axis=0)
     tile = Tile(xyz, np.ones(len(xyz), bool), np.zeros(3), seed=1)
