@@ -234,9 +234,10 @@ class Reach:
     """The far points (n, 3) a pick of the hole cover can bring closer: a table of every point's
     REACH_NEIGHBOURS nearest and their distances (one batched pykdtree query; a pick reaches about 4 on real
     scans), each pick's row read out as Python numbers, and the tree for the rare pick whose reach goes
-    past its table (218 of bcts_1+2's 25k picks). Distances are sqrt(dx^2 + dy^2 + dz^2) summed in that order, as numpy's einsum sums them
-    (pykdtree's own differ from it by an ulp in 9 % of pairs), so the cover is the same however a point is
-    reached (the same sums in a batch of rows as one row at a time). The table holds 192 bytes per far point."""
+    past its table (218 of bcts_1+2's 25k picks). Distances are sqrt(dx^2 + dy^2 + dz^2) summed in that
+    order, as numpy's einsum sums them (pykdtree's own differ from it by an ulp in 9 % of pairs), so the
+    cover is the same however a point is reached (the same sums in a batch of rows as one row at a time).
+    The table holds 192 bytes per far point."""
 
     def __init__(self, points: np.ndarray) -> None:
         self.points = points
