@@ -53,7 +53,11 @@ def column_max(values: np.ndarray) -> np.ndarray:
 def sorted_distinct(keys: np.ndarray) -> np.ndarray:
     """The distinct values of (n,) integer keys, ascending: a sort and one comparison. numpy 2.4's
     np.unique hashes or argsorts, 3-16x slower on a tile's voxel keys."""
-    ordered = np.sort(keys)
+    return distinct_of_sorted(np.sort(keys))
+
+
+def distinct_of_sorted(ordered: np.ndarray) -> np.ndarray:
+    """The distinct values of (n,) ascending keys, in one comparison."""
     distinct = np.ones(len(ordered), dtype=bool)
     distinct[1:] = ordered[1:] != ordered[:-1]
     return ordered[distinct]
@@ -68,13 +72,20 @@ def _spread_bits(values: np.ndarray) -> np.ndarray:
     return v
 
 
+MORTON_STEPS = 2**21  # cells per axis a 63-bit Z-order code tells apart
+
+
+def morton_codes(cells: np.ndarray) -> np.ndarray:
+    """(n,) uint64 Z-order codes of (n, 3) non-negative integer cells below MORTON_STEPS per axis (z's bit
+    highest of each triple): code >> 3 is the code of the cells halved, so sorted codes stay sorted."""
+    return _spread_bits(cells[:, 0]) | _spread_bits(cells[:, 1]) << np.uint64(1) | _spread_bits(cells[:, 2]) << np.uint64(2)
+
+
 def morton_order(xyz: np.ndarray) -> np.ndarray:
     """Indices sorting points along a Z-order curve over their bounding cube (2**21 steps per axis)."""
     low = column_min(xyz)
     span = max(float((column_max(xyz) - low).max()), 1e-300)
-    steps = ((xyz - low) * ((2**21 - 1) / span)).astype(np.uint64)
-    code = _spread_bits(steps[:, 0]) | _spread_bits(steps[:, 1]) << np.uint64(1) | _spread_bits(steps[:, 2]) << np.uint64(2)
-    return stable_argsort(code)
+    return stable_argsort(morton_codes(((xyz - low) * ((MORTON_STEPS - 1) / span)).astype(np.uint64)))
 
 
 def stable_argsort(keys: np.ndarray) -> np.ndarray:

@@ -237,6 +237,10 @@ def test_occupied_voxels_count_each_level_as_its_own_grid_would():
     expected = [len(np.unique(np.floor((xyz - xyz.min(axis=0)) / size), axis=0)) for size in sizes]
     np.testing.assert_array_equal(occupied_voxels(xyz, sizes), expected)
     assert occupied_voxels(xyz[:1], sizes).tolist() == [1] * len(sizes)
+    fine = 2.0 ** np.arange(-6, 3)  # a stray return 2**21 finest voxels above the first point: too many for a
+    stray = np.concatenate([xyz, xyz[:1] + [0.0, 0.0, 2.0**15]])  # Z-order code, which would take it for that point
+    expected = [len(np.unique(np.floor((stray - stray.min(axis=0)) / size), axis=0)) for size in fine]
+    np.testing.assert_array_equal(occupied_voxels(stray, fine), expected)
     with pytest.raises(ValueError, match="double"):
         occupied_voxels(xyz, np.array([1.0, 3.0]))
 
