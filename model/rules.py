@@ -63,6 +63,13 @@ def distinct_of_sorted(ordered: np.ndarray) -> np.ndarray:
     return ordered[distinct]
 
 
+def voxel_edge_for(counts: np.ndarray, sizes: np.ndarray, target: int) -> float:
+    """The voxel edge at which points that occupy (levels,) `counts` voxels at ascending edges `sizes`
+    occupy `target` (log-log interpolated, held at the ends): counts fall about as a power of the edge."""
+    log_counts = np.log(np.maximum(np.asarray(counts, dtype=np.float64), 1))
+    return float(np.exp(np.interp(-np.log(max(target, 1)), -log_counts, np.log(sizes))))  # interp wants ascending x
+
+
 def _spread_bits(values: np.ndarray) -> np.ndarray:
     """Put bit i of each 21-bit integer at bit 3i, for interleaving three coordinates."""
     v = values.astype(np.uint64) & np.uint64(0x1FFFFF)

@@ -6,7 +6,7 @@ from functools import cached_property
 
 import numpy as np
 
-from model.rules import morton_order
+from model.rules import morton_order, voxel_edge_for
 
 
 @dataclass(frozen=True)
@@ -36,12 +36,26 @@ class FillContext:
 
 
 @dataclass(frozen=True)
+class VoxelCounts:
+    """A tile's occupied voxels at doubling edges, as a run's survey counted them over its core (voxels
+    aligned to its lowest core point): a method that searches a voxel edge for its budget starts there."""
+
+    sizes: np.ndarray  # (levels,) ascending voxel edges, scan units
+    counts: np.ndarray  # (levels,) occupied voxels at each
+
+    def edge_for(self, count: int) -> float:
+        """About the voxel edge at which the core occupies `count` voxels."""
+        return voxel_edge_for(self.counts, self.sizes, count)
+
+
+@dataclass(frozen=True)
 class Tile:
     """A tile as a simplifier sees it: centred xyz of core and halo points, and which are core.
 
     `centre` is what was subtracted (scan coordinates = xyz + centre), so a method can align a grid
     across tiles; `seed` is the tile's own seed, fixed by the run seed and the tile id; `context`, what
-    a run decided for this tile from every tile's survey (None for a tile on its own).
+    a run decided for this tile from every tile's survey, and `voxels`, what that survey counted (both None
+    for a tile on its own).
     """
 
     xyz: np.ndarray
@@ -49,6 +63,7 @@ class Tile:
     centre: np.ndarray
     seed: int
     context: FillContext | None = None
+    voxels: VoxelCounts | None = None
 
     @property
     def core_count(self) -> int:

@@ -80,6 +80,23 @@ def test_a_parameter_reaches_the_workers(tmp_path):
     assert "method_parameters" not in read_provenance(default.header)["settings"]
 
 
+def test_a_tiles_survey_reaches_its_simplify_step(tmp_path, monkeypatch):
+    """The voxel counts a run's survey measured reach each tile's method (its voxel search starts there),
+    with the survey's doubling edges, and they are the tile's own (tiles differ)."""
+    import model.methods
+
+    seen = []
+    voxel_simplify = model.methods.voxel_simplify
+    monkeypatch.setattr(model.methods, "voxel_simplify",
+                        lambda tile, budget, slack: seen.append(tile.voxels) or voxel_simplify(tile, budget, slack))
+    scan = tmp_path / "scan.las"
+    write_patch(scan, 26917, 1.0, n=30_000)
+    pipeline.run(scan, tmp_path / "out.las", method="voxel", ratio=0.1, tile_size=20.0, merge_tile_points=0)
+    assert len(seen) > 1 and all(survey is not None for survey in seen)
+    assert all(np.allclose(survey.sizes[1:], 2 * survey.sizes[:-1]) and survey.counts[0] > 0 for survey in seen)
+    assert len({tuple(survey.counts) for survey in seen}) > 1
+
+
 def test_cli_param_flags_reach_the_output(tmp_path):
     scan, out = tmp_path / "scan.las", tmp_path / "out.las"
     write_patch(scan, 26917, 1.0, n=4_000)

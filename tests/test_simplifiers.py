@@ -90,3 +90,42 @@ def test_voxel_tops_up_when_points_are_duplicates():
     tile = Tile(xyz, np.ones(len(xyz), bool), np.zeros(3), seed=1)
     selection = get_simplifier("voxel")(tile, 120)
     assert len(np.unique(selection.indices)) == 120
+
+
+@pytest.mark.parametrize("start_over_survey", [None, 1.0, 0.1, 10.0, 1e-9, 1e9])
+def test_voxel_cell_search_meets_the_budget_from_any_start(start_over_survey):
+    """From a run survey's estimate (the tile's occupied voxels at doubling edges), from far either side of
+    it, or with no start, the cell found gives the budget's voxels, at most the slack more."""
+    from model.baselines import VOXEL_COUNT_SLACK, _cell_for_budget, axis_columns
+    from model.selection import VoxelCounts
+    from tiling.budgets import occupied_voxels
+
+    tile = make_tile()
+    points = tile.xyz[tile.core] + tile.centre
+    sizes = 0.5 * 2.0 ** np.arange(-4, 5)
+    survey = VoxelCounts(sizes, occupied_voxels(points, sizes))
+    start = None if start_over_survey is None else survey.edge_for(800) * start_over_survey
+    cell = _cell_for_budget(axis_columns(points), (points.min(axis=0), points.max(axis=0)), 800, VOXEL_COUNT_SLACK,
+                            start)
+    assert 800 <= len(np.unique(np.floor(points / cell), axis=0)) <= 800 * (1 + VOXEL_COUNT_SLACK)
+
+
+def test_voxel_with_a_survey_keeps_one_point_per_voxel_and_tops_up_duplicates():
+    from dataclasses import replace
+
+    from model.baselines import VOXEL_COUNT_SLACK, _cell_for_budget, axis_columns
+    from model.selection import VoxelCounts
+    from tiling.budgets import occupied_voxels
+
+    tile = make_tile()
+    points = tile.xyz[tile.core] + tile.centre
+    sizes = 0.5 * 2.0 ** np.arange(-4, 5)
+    survey = VoxelCounts(sizes, occupied_voxels(points, sizes))
+    kept = get_simplifier("voxel")(replace(tile, voxels=survey), 800).xyz + tile.centre
+    cell = _cell_for_budget(axis_columns(points), (points.min(axis=0), points.max(axis=0)), 800, VOXEL_COUNT_SLACK,
+                            survey.edge_for(800))
+    assert len(np.unique(np.floor(kept / cell), axis=0)) == 800
+    xyz = np.repeat(np.random.default_rng(0).uniform(0, 1, size=(50, 3)), 4, axis=0)
+    twins = Tile(xyz, np.ones(len(xyz), bool), np.zeros(3), seed=1,
+                 voxels=VoxelCounts(sizes / 50, occupied_voxels(xyz, sizes / 50)))
+    assert len(np.unique(get_simplifier("voxel")(twins, 120).indices)) == 120

@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from model.rules import MORTON_STEPS, column_max, column_min, distinct_of_sorted, kept_count, morton_codes, sorted_distinct
+from model.rules import (MORTON_STEPS, column_max, column_min, distinct_of_sorted, kept_count, morton_codes,
+                         sorted_distinct, voxel_edge_for)
 
 
 def tile_budgets(counts: np.ndarray, ratio: float, floors: np.ndarray | None = None,
@@ -117,9 +118,7 @@ def coverage_weights(occupied: np.ndarray, sizes: np.ndarray, target: int) -> np
 def even_spacing(occupied: np.ndarray, sizes: np.ndarray, target: int) -> float:
     """The voxel edge at which the whole scan has `target` occupied voxels (log-log interpolated): the
     spacing of an even thinning to `target` points, and the finest any `target` points can cover."""
-    totals = occupied.sum(axis=0).astype(np.float64)  # falls as the size grows
-    log_sizes, log_totals = np.log(sizes), np.log(np.maximum(totals, 1))
-    return float(np.exp(np.interp(-np.log(max(target, 1)), -log_totals, log_sizes)))  # interp wants ascending x
+    return voxel_edge_for(occupied.sum(axis=0), sizes, target)
 
 
 def voxels_at(occupied: np.ndarray, sizes: np.ndarray, size: float) -> np.ndarray:

@@ -13,6 +13,7 @@ import numpy as np
 
 from model.methods import Fill
 from model.rules import kept_count
+from model.selection import VoxelCounts
 from pipeline.config import RunConfig, parse_size
 from pipeline.engine.classes import ClassRule
 from pipeline.engine.execute import map_tasks
@@ -147,17 +148,19 @@ def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray
 
 
 def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], counts: np.ndarray,
-                 work: WorkDir, config: RunConfig, progress: Progress) -> tuple[np.ndarray, ScanFill | None]:
-    """(tiles,) budgets for the (tiles,) points each tile thins, summing to round(ratio * their sum), and
-    the fill settings of a stratified method's tiles (None for other methods): a method that spaces points
-    evenly or follows saliency surveys every tile first, so tiles share out the points as one pass over
-    the whole scan would."""
+                 work: WorkDir, config: RunConfig,
+                 progress: Progress) -> tuple[np.ndarray, ScanFill | None, list[VoxelCounts] | None]:
+    """(tiles,) budgets for the (tiles,) points each tile thins, summing to round(ratio * their sum), the
+    fill settings of a stratified method's tiles (None for other methods) and each tile's surveyed voxel
+    counts (None unsurveyed): a method that spaces points evenly or follows saliency surveys every tile
+    first, so tiles share out the points as one pass over the whole scan would."""
     target = kept_count(config.ratio, int(counts.sum()))
-    weights, floors, fill = None, np.minimum(counts, 1), None  # no tile left empty
+    weights, floors, fill, voxels = None, np.minimum(counts, 1), None, None  # no tile left empty
     simplifier = config.simplifier
     if simplifier.spaces_evenly or isinstance(simplifier, Fill):
         surveys, sizes = survey_scan(client, plan, slices, work, config, target, progress)
         occupied = np.array([survey.occupied for survey in surveys])
+        voxels = [VoxelCounts(sizes, survey.occupied) for survey in surveys]
         if isinstance(simplifier, Fill):  # saliency shared as one pass would; a point in every voxel of the
             weights, fill = scan_fill(surveys, occupied, sizes, target,  # hole radius, so every tile keeps
                                       simplifier.cover_spacings)  # enough to cover its holes
@@ -165,11 +168,12 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
         else:  # spaced evenly: tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
     budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights)
-    return budgets, fill
+    return budgets, fill, voxels
 
 
 def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray, whole: np.ndarray,
-              config: RunConfig, fill: ScanFill | None = None) -> list[TileJob]:
+              config: RunConfig, fill: ScanFill | None = None,
+              voxels: list[VoxelCounts] | None = None) -> list[TileJob]:
     """One job per tile that keeps a point (a budget, or points kept whole), in tile order: neighbours
     share pieces, so caches stay warm."""
     jobs = []
@@ -184,7 +188,7 @@ def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets:
                                                  cover_radius=fill.cover_radius)
         jobs.append(TileJob(str(work.store_path), str(work.tile_path(tile_id)), tile_id, tuple(slices[tile_id]),
                             overlap, cache_bytes, budget, reserve, config.simplifier, config.seed, **surveyed,
-                            rule=rule))
+                            rule=rule, voxels=None if voxels is None else voxels[tile_id]))
     return jobs
 
 

@@ -192,8 +192,8 @@ def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: 
         note(said)
     clock.lap("read and bucket")
     counts = np.array([t.count for t in plan.tiles], dtype=np.int64) - whole  # the points to thin
-    budgets, fill = scan_budgets(client, plan, slices, counts, work, config, progress)
-    jobs = make_jobs(work, plan, slices, budgets, whole, config, fill)
+    budgets, fill, voxels = scan_budgets(client, plan, slices, counts, work, config, progress)
+    jobs = make_jobs(work, plan, slices, budgets, whole, config, fill, voxels)
     pending = [job for job in jobs if not Path(job.result_path).is_file()]
     map_tasks(client, simplify_tile, pending, plan, desc="simplify", progress=progress,
               weight=lambda outcome: outcome.points, cost=core_points(plan))

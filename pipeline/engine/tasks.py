@@ -7,14 +7,14 @@ local or remote cluster can run it, in any order, with the same result.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 
 from model.methods import Fill, Method
 from model.rules import grid_xyz, kept_count, take_records
-from model.selection import FillContext, FillLoss, Selection, Tile
+from model.selection import FillContext, FillLoss, Selection, Tile, VoxelCounts
 from model.stratified import pick_spacings
 from pipeline.engine.classes import ClassRule, class_histogram
 from pipeline.engine.workdir import BucketedPiece, WorkDir, save_npz, write_atomically
@@ -43,6 +43,7 @@ class TileJob:
     detail_scale: float = 0.0       # the tile's loss level over the scan's (model.selection.FillContext)
     cover_radius: float = 0.0       # the scan-wide hole radius, scan units
     rule: ClassRule = ClassRule()   # core points it keeps whole are saved apart and never thinned
+    voxels: VoxelCounts | None = None  # what the tile's survey counted (model.selection.Tile.voxels)
 
 
 @dataclass(frozen=True)
@@ -81,10 +82,9 @@ def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     started = time.perf_counter()
     tile, records, whole = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap,
                                      job.seed, job.rule)
-    if job.survey_path is not None:
-        loss = load_fill_loss(Path(job.survey_path))
-        context = FillContext(loss, job.detail_scale, job.cover_radius, kept=job.budget)
-        tile = Tile(tile.xyz, tile.core, tile.centre, tile.seed, context)
+    context = None if job.survey_path is None else FillContext(load_fill_loss(Path(job.survey_path)), job.detail_scale,
+                                                                job.cover_radius, kept=job.budget)
+    tile = replace(tile, context=context, voxels=job.voxels)
     count = min(job.budget + job.reserve, tile.core_count)
     picked = job.simplifier(tile, count) if count else Selection.of(tile, np.empty(0, np.int64))
     write_atomically(Path(job.result_path),
