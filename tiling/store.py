@@ -238,10 +238,12 @@ class TileStore:
             yield self._filtered(batch, keep)
 
     def _filtered(self, batch: Sequence[np.ndarray], keep: Callable[[StoredPoints], np.ndarray]) -> StoredPoints:
-        """The points of some row chunks that `keep` keeps, told apart on a view of the rows."""
+        """The points of some row chunks that `keep` keeps, told apart on a view of the rows (no copy where it
+        keeps them all, as for every load of a method that reads no halo)."""
         rows = np.concatenate(batch) if len(batch) > 1 else np.ascontiguousarray(batch[0])
         view = rows.view(self.row_dtype).ravel()
-        return self._points(rows[keep(StoredPoints(view, view[INDEX_FIELD]))])
+        kept = keep(StoredPoints(view, view[INDEX_FIELD]))
+        return self._points(rows if kept.all() else rows[kept])
 
     def _points(self, rows: np.ndarray) -> StoredPoints:
         """Records and global indices of stored rows."""

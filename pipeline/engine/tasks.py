@@ -109,8 +109,9 @@ def load_tile(store_path: str, slices: tuple[Slice, ...], cache_bytes: int, plan
         xyz = grid_xyz(points.records, scales, offsets)
         core = plan.core_mask(tile_id, xyz)
         keep = plan.halo_mask(core, tile_id, xyz, overlap)
-        kept_xyz.append(xyz[keep])
-        kept_core.append(core[keep])
+        every = keep.all()  # a method that reads no halo keeps every row it loads: no copies then
+        kept_xyz.append(xyz if every else xyz[keep])
+        kept_core.append(core if every else core[keep])
         return keep
 
     records = store.load(slices, cache_bytes, keep=seen).records  # a crowded neighbour is never held whole
@@ -120,7 +121,8 @@ def load_tile(store_path: str, slices: tuple[Slice, ...], cache_bytes: int, plan
         raise AssertionError(f"tile {tile_id}: {len(records)} rows kept but {len(xyz)} coordinates")
     protected = core & rule.protected(records)
     core &= ~protected
-    centre = xyz[core | protected].mean(axis=0) if (core | protected).any() else np.zeros(3)
+    owned = core | protected
+    centre = (xyz if owned.all() else xyz[owned]).mean(axis=0) if owned.any() else np.zeros(3)
     return Tile(xyz - centre, core, centre, tile_seed(run_seed, tile_id)), records, np.flatnonzero(protected)
 
 
@@ -179,7 +181,7 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     """Measure one tile at the scan's ratio and keep the measurement in the work folder (a resumed run reads it)."""
     tile, _, _ = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap, job.seed,
                            job.rule)
-    occupied = occupied_voxels(tile.xyz[tile.core], np.asarray(job.sizes))
+    occupied = occupied_voxels(tile.xyz if tile.core.all() else tile.xyz[tile.core], np.asarray(job.sizes))
     budget = kept_count(job.ratio, tile.core_count)
     loss, spacings = FillLoss(None, 0.0), np.empty(0)
     if isinstance(job.simplifier, Fill) and budget > 0:
