@@ -104,16 +104,15 @@ def joined(parts: Sequence[StoredPoints]) -> StoredPoints:
 
 def encode_rows(records: np.ndarray, index: np.ndarray, order: np.ndarray | None = None) -> np.ndarray:
     """Records plus global index, one uint8 row per point; with `order`, the rows of records[order] and
-    index[order], each record's bytes gathered straight into its row: a structured array's own fancy index
-    copies field by field (a 500k-point piece of bcts bucketed in 114-194 ms that way, 33-55 ms this way)."""
-    source = record_bytes(records)
-    rows = np.empty((len(records), records.dtype.itemsize + TAIL), dtype=np.uint8)
-    if order is None:
-        rows[:, :-TAIL] = source
-    else:
-        np.take(source, order, axis=0, out=rows[:, :-TAIL], mode="clip")  # clip: no buffered copy of `out`
-        index = np.asarray(index)[order]
-    rows[:, -TAIL:] = np.ascontiguousarray(index, dtype="<i8").view(np.uint8).reshape(len(index), TAIL)
+    index[order]. Rows are filled through a two-field view (record bytes, index), each record's bytes
+    gathered whole: a structured array's own fancy index copies field by field (a 500k-point piece of bcts
+    bucketed in 114-194 ms that way), a (n, bytes) take into the rows' strided columns took 15 ms, this 9."""
+    width = records.dtype.itemsize
+    source = record_bytes(records).view(np.dtype((np.void, width))).ravel()
+    rows = np.empty((len(records), width + TAIL), dtype=np.uint8)
+    fields = rows.view(np.dtype([("record", (np.void, width)), ("index", "<i8")])).ravel()
+    fields["record"] = source if order is None else source[order]
+    fields["index"] = index if order is None else np.asarray(index)[order]
     return rows
 
 
