@@ -56,7 +56,9 @@ class PlySource:
         return np.asarray(self._vertices.data[name][start:stop])
 
     def _make_header(self, chunk: int) -> laspy.LasHeader:
-        """A PF7 header on a millimetre grid anchored at the cloud's minimum (found by one streamed pass)."""
+        """A PF7 header on a millimetre grid anchored at the cloud's minimum, found by one streamed pass a column
+        at a time (a NaN or infinity shows in a column's minimum or maximum): stacking the columns into rows
+        and reducing across them took 0.3 s of bcts_1..4's 2.8M vertices."""
         header = laspy.LasHeader(version="1.4", point_format=7)
         for name in self._extra:
             dtype = np.dtype(self._vertices.data.dtype[name])
@@ -64,11 +66,12 @@ class PlySource:
         mins = np.full(3, np.inf)
         maxs = np.full(3, -np.inf)
         for start in range(0, self.point_count, chunk):
-            xyz = np.column_stack([self._column(a, start, start + chunk) for a in XYZ]).astype(np.float64)
-            if not np.isfinite(xyz).all():
-                raise PipelineError(f"{self.path}: NaN or infinite coordinates near vertex {start}")
-            mins = np.minimum(mins, xyz.min(axis=0))
-            maxs = np.maximum(maxs, xyz.max(axis=0))
+            for axis, name in enumerate(XYZ):
+                column = self._column(name, start, start + chunk)
+                low, high = float(column.min()), float(column.max())
+                if not (np.isfinite(low) and np.isfinite(high)):
+                    raise PipelineError(f"{self.path}: NaN or infinite coordinates near vertex {start}")
+                mins[axis], maxs[axis] = min(mins[axis], low), max(maxs[axis], high)
         if self.point_count:
             header.offsets = np.floor(mins)
             header.scales = np.full(3, PLY_SCALE)
