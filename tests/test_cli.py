@@ -45,6 +45,16 @@ def test_help_reads_like_a_tool():
         assert flag in result.stdout
 
 
+def test_the_command_line_imports_laspy_without_its_http_client_and_leaves_requests_importable():
+    """laspy's `import requests` (for remote COPC) is a fifth of a small run's wall; the CLI reads local files."""
+    probe = ("import sys, importlib.util, pipeline.apps.cli, laspy.copc; "
+             "print(laspy.copc.requests is None, 'requests' in sys.modules); "
+             "print(importlib.util.find_spec('requests') is None or __import__('requests').Session is not None)")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["True", "False", "True"]
+
+
 def test_info_summary_and_json():
     path = shared_file("bcts_1.laz")
     text = cli("info", str(path))

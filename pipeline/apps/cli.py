@@ -12,15 +12,19 @@ from pathlib import Path
 
 import click
 
-import configs
-from pipeline.apps.cli_extras import demo_command, train_command, train_detail_command
-from pipeline.apps.scan_summary import format_summary, summarize
-from pipeline.apps.scoring import DEFAULT_SAMPLE
-from pipeline.apps.visual.report_region import COLORS, parse_region
-from pipeline.config import METHODS, build_config, parse_list, parse_parameters
-from pipeline.engine.stop_guard import STOP_GRACE_S
-from pipeline.errors import Interrupted, PipelineError, Terminated, file_system_error, signal_exit_code
-from pipeline.progress import Progress
+from pipeline.apps.lean_start import import_laspy_without_http
+
+import_laspy_without_http()  # before the imports below, which bring laspy in
+
+import configs  # noqa: E402
+from pipeline.apps.cli_extras import demo_command, train_command, train_detail_command  # noqa: E402
+from pipeline.apps.scan_summary import format_summary, summarize  # noqa: E402
+from pipeline.apps.scoring import DEFAULT_SAMPLE  # noqa: E402
+from pipeline.apps.visual.report_region import COLORS, parse_region  # noqa: E402
+from pipeline.config import METHODS, build_config, parse_list, parse_parameters  # noqa: E402
+from pipeline.engine.stop_guard import STOP_GRACE_S  # noqa: E402
+from pipeline.errors import Interrupted, PipelineError, Terminated, file_system_error, signal_exit_code  # noqa: E402
+from pipeline.progress import Progress  # noqa: E402
 
 EXIT_ERROR = 2
 
