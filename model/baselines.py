@@ -141,8 +141,8 @@ def _cell_for_budget(columns: list[np.ndarray], bounds: tuple[np.ndarray, np.nda
     def count(cell: float) -> int:
         return len(sorted_distinct(_voxel_keys(columns, cell, mins, maxs)))
 
-    if start is None or extent == 0:
-        (low, low_count), (high, high_count) = (finest, count(finest)), (extent * 2, 1)  # one voxel holds everything
+    if start is None or extent == 0 or budget * (1 + slack) >= len(columns[0]):  # near every point: the finest
+        (low, low_count), (high, high_count) = (finest, count(finest)), (extent * 2, 1)  # cell ends it at once
     else:
         (low, low_count), (high, high_count) = _bracket(count, start, budget, slack, (finest, extent * 2))
     if extent == 0 or low_count <= budget * (1 + slack):
@@ -160,14 +160,21 @@ def _cell_for_budget(columns: list[np.ndarray], bounds: tuple[np.ndarray, np.nda
     return low
 
 
+MIN_CELL_STEP = 1.01  # the least change of cell the bracket search makes
+CRAWL_STEPS = 8  # moves before the bracket search's steps grow: a count this slow to cross the budget is on a plateau
+
+
 def _bracket(count: Callable[[float], int], start: float, budget: int, slack: float,
              limits: tuple[float, float]) -> tuple[tuple[float, int], tuple[float, int]]:
     """(cell, count) pairs from `start` on: one with at least `budget` voxels and one with fewer, or the
     first within `slack` above the budget as both. Steps follow count ~ cell**-2 (a surface's voxels),
-    aimed at the middle of the window; `limits` (finest, coarsest) end a search that cannot bracket."""
+    aimed at the middle of the window, and at least MIN_CELL_STEP. After CRAWL_STEPS moves the step's
+    power doubles with each move: where the count hardly follows the cell (a plateau of exact duplicates, a
+    budget above what any cell gives) the search ends in a few more counts, not hundreds of 1 % moves
+    (a bcts tile at ratio 0.99: 604 counts, 0.3 s, before)."""
     finest, coarsest = limits
     aim = budget * (1 + slack / 2)
-    cell, enough, too_few = min(max(start, finest), coarsest), None, None
+    cell, enough, too_few, moves = min(max(start, finest), coarsest), None, None, 0
     while True:
         found = (cell, count(cell))
         if found[1] >= budget:
@@ -180,8 +187,10 @@ def _bracket(count: Callable[[float], int], start: float, budget: int, slack: fl
                 return found, found
         if enough is not None and too_few is not None:
             return enough, too_few
-        step = (found[1] / aim) ** 0.5
-        cell = min(max(cell * step, finest), cell / 1.01) if too_few is not None else min(max(cell * step, cell * 1.01), coarsest)
+        moves += 1  # every move goes the same way: the first count on the other side of the budget ends the search
+        step = ((found[1] / aim) ** 0.5) ** (2 ** max(moves - CRAWL_STEPS, 0))
+        cell = (min(max(cell * step, finest), cell / MIN_CELL_STEP) if too_few is not None
+                else min(max(cell * step, cell * MIN_CELL_STEP), coarsest))
 
 
 def _voxel_representatives(columns: list[np.ndarray], bounds: tuple[np.ndarray, np.ndarray],
