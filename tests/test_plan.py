@@ -241,6 +241,10 @@ def test_occupied_voxels_count_each_level_as_its_own_grid_would():
     stray = np.concatenate([xyz, xyz[:1] + [0.0, 0.0, 2.0**15]])  # Z-order code, which would take it for that point
     expected = [len(np.unique(np.floor((stray - stray.min(axis=0)) / size), axis=0)) for size in fine]
     np.testing.assert_array_equal(occupied_voxels(stray, fine), expected)
+    cube = rng.uniform(0, 1, size=(300, 3))  # one return 2**30 off in every axis: too far even for a row key
+    far = np.concatenate([cube, [[2.0**30] * 3]])
+    expected = [len(np.unique(np.floor((far - far.min(axis=0)) / size), axis=0)) for size in fine / 4]
+    np.testing.assert_array_equal(occupied_voxels(far, fine / 4), expected)
     with pytest.raises(ValueError, match="double"):
         occupied_voxels(xyz, np.array([1.0, 3.0]))
 

@@ -92,11 +92,17 @@ def occupied_voxels(xyz: np.ndarray, sizes: np.ndarray) -> np.ndarray:
     level = 0
     while level < len(sizes) and cells.max() >= MORTON_STEPS:  # too many voxels across for a code
         span = column_max(cells) + 1
-        keys = sorted_distinct((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2])
-        counts[level] = len(keys)
-        rows, layer = np.divmod(keys, span[2])
-        cells = np.column_stack([*np.divmod(rows, span[1]), layer]) >> 1
+        if float(span[0]) * float(span[1]) * float(span[2]) < 2.0**63:  # one int64 key per voxel
+            keys = sorted_distinct((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2])
+            rows, layer = np.divmod(keys, span[2])
+            cells = np.column_stack([*np.divmod(rows, span[1]), layer])
+        else:  # a stray point so far off that even a key overflows: distinct rows (slower, exact)
+            cells = np.unique(cells, axis=0)
+        counts[level] = len(cells)
+        cells >>= 1
         level += 1
+    if level == len(sizes):
+        return counts
     codes = np.sort(morton_codes(cells))
     for level in range(level, len(sizes)):
         codes = distinct_of_sorted(codes)
