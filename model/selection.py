@@ -35,10 +35,11 @@ class FillContext:
     kept: int | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class VoxelCounts:
     """A tile's occupied voxels at doubling edges, as a run's survey counted them over its core (voxels
-    aligned to its lowest core point): a method that searches a voxel edge for its budget starts there."""
+    aligned to its lowest core point): a method that searches a voxel edge for its budget starts there.
+    Compared by identity (eq=False), so a job holding it stays hashable, as arrays are not."""
 
     sizes: np.ndarray  # (levels,) ascending voxel edges, scan units
     counts: np.ndarray  # (levels,) occupied voxels at each

@@ -1,6 +1,7 @@
 """The command line: help, info, and one-line errors with a non-zero exit and no output file."""
 from __future__ import annotations
 
+import importlib.util
 import json
 import subprocess
 import sys
@@ -47,12 +48,14 @@ def test_help_reads_like_a_tool():
 
 def test_the_command_line_imports_laspy_without_its_http_client_and_leaves_requests_importable():
     """laspy's `import requests` (for remote COPC) is a fifth of a small run's wall; the CLI reads local files."""
+    if importlib.util.find_spec("requests") is None:
+        pytest.skip("requests is not installed: laspy imports no HTTP client anyway")
     probe = ("import sys, importlib.util, pipeline.apps.cli, laspy.copc; "
              "print(laspy.copc.requests is None, 'requests' in sys.modules); "
              "print(importlib.util.find_spec('requests') is None or __import__('requests').Session is not None)")
     result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr
-    assert result.stdout.split() == ["True", "False", "True"]
+    assert result.stdout.split() == ["True", "False", "True"]  # laspy without it, requests not loaded, importable
 
 
 def test_info_summary_and_json():
