@@ -190,13 +190,28 @@ def cloudcompare_row(scan: Scan, ply: tuple[Path, np.ndarray], ratio: float, wor
                  cloudcompare_peer.kept_count(result), run.seconds, slowest, run.peak_rss_bytes)
 
 
+def unit_options(scan: Scan) -> tuple[str, ...]:
+    """Length options that give the scan's PLY (no CRS, so metres are assumed) the tiles its LAS files get in
+    their own unit (autzen is in feet: 50 m tiles are 164 ft there, not 50)."""
+    from pipeline.config import RunConfig
+    from pipeline.io.crs import length_unit
+
+    with laspy.open(scan.paths[0]) as reader:
+        unit = length_unit(reader.header)
+    if unit.metres == 1.0 or unit.name == "degree":
+        return ()
+    lengths = RunConfig().in_unit(unit.metres)
+    return ("--tile-size", repr(lengths.tile_size), "--overlap", repr(lengths.overlap),
+            "--seam-tolerance", repr(lengths.seam_tolerance))
+
+
 def same_file_rows(scan: Scan, source: Path, methods: list[str], ratio: float, work: Path,
                    repeat: int) -> dict[str, Timed]:
     """`fps` and `voxel` (of `methods`) at 2 workers on the very PLY CloudCompare reads, as the issue timed them:
     a PLY holds no LAZ to decode, so these rows, not the LAZ ones, are the like-for-like comparison."""
-    rows = {}
+    rows, ply = {}, Scan(scan.name, (source,), unit_options(scan))
     for method in (m for m in ("fps", "voxel") if m in methods):
-        timed = pipeline_row(Scan(scan.name, (source,)), method, 2, ratio, work, repeat)
+        timed = pipeline_row(ply, method, 2, ratio, work, repeat)
         rows[method] = replace(timed, what=f"{timed.what} (on CloudCompare's PLY)")
     return rows
 
