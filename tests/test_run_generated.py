@@ -105,6 +105,34 @@ def test_one_and_two_workers_and_this_process_give_identical_bytes(tmp_path, den
     assert outputs[0] == outputs[1] == outputs[2]
 
 
+@pytest.mark.parametrize("method", ["voxel", "stratified"])
+def test_a_run_that_failed_after_its_survey_resumes_to_the_same_bytes(tmp_path, dense_patch, monkeypatch, method):
+    """A tile that fails after every survey is saved: the rerun reads the surveys back (voxel counts, fill
+    loss) and the tiles already finished, and writes the bytes of a run that never failed (16 tiles, unmerged,
+    so the surveys' counts share out the budgets)."""
+    import pipeline.engine.runner as runner
+    from pipeline.errors import PipelineError
+
+    clean, out = tmp_path / "clean.laz", tmp_path / "out.laz"
+    pipeline.run(dense_patch, clean, ratio=0.1, method=method, tile_size=4.0, seed=7, merge_tile_points=0)
+    simplify_tile, calls = runner.simplify_tile, []
+
+    def fails_from_the_second(job, plan):
+        calls.append(job.tile_id)
+        if len(calls) > 1:
+            raise PipelineError(f"tile {job.tile_id}: a fault for the test")
+        return simplify_tile(job, plan)
+
+    monkeypatch.setattr(runner, "simplify_tile", fails_from_the_second)
+    with pytest.raises(PipelineError, match="finished work kept in"):
+        pipeline.run(dense_patch, out, ratio=0.1, method=method, tile_size=4.0, seed=7, merge_tile_points=0, workers=1)
+    assert list(tmp_path.glob(".out.laz.work-*/survey-*.npz")) and not out.exists()
+    monkeypatch.setattr(runner, "simplify_tile", simplify_tile)
+    report = pipeline.run(dense_patch, out, ratio=0.1, method=method, tile_size=4.0, seed=7, merge_tile_points=0)
+    assert report.resumed_tiles > 0
+    assert out.read_bytes() == clean.read_bytes()
+
+
 def test_seed_changes_random_output(tmp_path, dense_patch):
     a = pipeline.run(dense_patch, tmp_path / "a.las", ratio=0.1, method="random", workers=1, seed=1).output
     b = pipeline.run(dense_patch, tmp_path / "b.las", ratio=0.1, method="random", workers=1, seed=2).output
