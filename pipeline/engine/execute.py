@@ -99,7 +99,7 @@ def map_tasks(client: Client | Executor, function: Callable, items: Sequence[Any
 def submission_order(items: Sequence[Any], cost: Callable[[Any], int] | None) -> np.ndarray:
     """(items,) positions in the order to submit them: the items costlier than the mean first, then the
     rest, each group in item order (so neighbouring tiles, which share stored chunks, stay together)."""
-    if cost is None:
+    if cost is None or not len(items):  # none left (a resumed run's finished phase): no mean to take
         return np.arange(len(items))
     costs = np.array([cost(item) for item in items], dtype=float)
     return np.argsort(costs <= costs.mean(), kind="stable")
