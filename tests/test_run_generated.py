@@ -76,6 +76,31 @@ def test_tiled_fps_covers_as_one_pass_would(tmp_path, dense_patch):
     assert gap <= 1.3 * untiled_fps_gap(xyz, len(kept))
 
 
+def test_a_tile_far_larger_than_the_scan_still_finds_its_spacing(tmp_path):
+    """The survey's voxel sizes centre on a spacing guessed from occupied grid cells, which a 5 km tile makes
+    far too coarse for a 20 m scene (one 625 m cell): the sizes reach 2**8 either side of the guess, so the
+    even spacing (the floor of the cover radius) is still found, not held at the finest size, a radius too
+    coarse for the sparse part (largest gap 0.83 m as one tile against 0.26 m tiled, before)."""
+    rng = np.random.default_rng(3)
+    xy = np.concatenate([rng.uniform(0, 5, size=(20_000, 2)), rng.uniform(0, 20, size=(2_000, 2))])  # dense corner
+    header = laspy.LasHeader(version="1.2", point_format=3)
+    header.scales, header.offsets = [0.001] * 3, [500_000.0, 4_000_000.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = 500_000 + xy[:, 0], 4_000_000 + xy[:, 1], 0.05 * rng.normal(size=len(xy))
+    scene = tmp_path / "scene.las"
+    las.write(scene)
+    scanned = np.column_stack([las.x, las.y, las.z])
+
+    def largest_gap(out: Path) -> float:
+        kept = laspy.read(out)
+        return float(cKDTree(np.column_stack([kept.x, kept.y, kept.z])).query(scanned)[0].max())
+
+    tiled, whole = tmp_path / "tiled.laz", tmp_path / "whole.laz"
+    pipeline.run(scene, tiled, ratio=0.1, method="stratified", tile_size=4.0, merge_tile_points=0)
+    pipeline.run(scene, whole, ratio=0.1, method="stratified", tile_size=5000.0, max_tile_points=1_000_000)
+    assert largest_gap(whole) <= 1.2 * largest_gap(tiled)
+
+
 def test_fps_budgets_follow_area_not_point_count(tmp_path):
     """Left half ten times denser than the right: tiled FPS keeps about as many points per m^2 on both
     halves, as one pass would (budgets in proportion to counts would keep ten times more on the left)."""

@@ -105,7 +105,10 @@ def crowded_cells_note(plan: TilePlan, max_points: int, tile_size_m: float) -> s
             f"them; a --tile-size of about {smaller:.2g} m or less would split them")
 
 
-COVERAGE_LEVELS = 2.0 ** np.arange(-4, 5)  # voxel sizes, relative to the 2-D spacing estimate
+COVERAGE_LEVELS = 2.0 ** np.arange(-8, 9)  # voxel sizes, relative to the 2-D spacing estimate: 2**8 either side,
+# as the estimate (occupied grid cells' area) is coarse when tiles are large against the scan (a 5 km tile on a
+# 20 m scene: 30x), and with 2**4 the even spacing was then held at the finest size, a cover radius 3x too wide.
+# Counting the extra levels is a shift of the sorted codes each; inside 2**4 the interpolations are unchanged.
 
 
 def survey_scan(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], work: WorkDir, config: RunConfig,
