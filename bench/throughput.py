@@ -194,13 +194,12 @@ def unit_options(scan: Scan) -> tuple[str, ...]:
     """Length options that give the scan's PLY (no CRS, so metres are assumed) the tiles its LAS files get in
     their own unit (autzen is in feet: 50 m tiles are 164 ft there, not 50)."""
     from pipeline.config import RunConfig
-    from pipeline.io.crs import length_unit
+    from pipeline.io.points import length_unit_of
 
-    with laspy.open(scan.paths[0]) as reader:
-        unit = length_unit(reader.header)
-    if unit.metres == 1.0 or unit.name == "degree":
+    metres = length_unit_of(scan.paths[0]).metres  # 1 for metres and degrees: nothing to convert
+    if metres == 1.0:
         return ()
-    lengths = RunConfig().in_unit(unit.metres)
+    lengths = RunConfig().in_unit(metres)
     return ("--tile-size", repr(lengths.tile_size), "--overlap", repr(lengths.overlap),
             "--seam-tolerance", repr(lengths.seam_tolerance))
 
