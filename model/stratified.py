@@ -108,14 +108,18 @@ def curve_of(weights: np.ndarray | None, curve: np.ndarray) -> np.ndarray | None
     return None if weights is None else weights[curve]
 
 
-def pick_spacings(tile: Tile, budget: int, loss: FillLoss) -> np.ndarray:
-    """(len(SPACING_QUANTILES),) quantiles of the nearest-pick distance among the picks of a trial fill
-    to `budget` (empty below two picks): pooled over tiles, the scan's typical output spacing."""
-    budget = min(budget, tile.core_count)
-    if budget < 2:
-        return np.empty(0)
+def trial_fill(tile: Tile, budget: int, loss: FillLoss) -> np.ndarray:
+    """Indices of the points a fill of `budget` core points with keep weights 1 + relative loss picks (at
+    phase 0.5, no hole cover): what a run's survey measures a tile's spacing and holes on."""
     curve = tile.curve
-    picks = tile.xyz[weighted_picks(curve, curve_of(fill_weights(loss, 1.0), curve), budget, 0.5)]
+    return weighted_picks(curve, curve_of(fill_weights(loss, 1.0), curve), min(budget, tile.core_count), 0.5)
+
+
+def pick_spacings(picks: np.ndarray) -> np.ndarray:
+    """(len(SPACING_QUANTILES),) quantiles of the nearest-pick distance among `picks` (m, 3) (empty below two
+    picks): pooled over tiles' trial fills, the scan's typical output spacing."""
+    if len(picks) < 2:
+        return np.empty(0)
     distance, _ = KDTree(np.ascontiguousarray(picks, dtype=np.float64)).query(picks, k=2)
     return np.quantile(distance[:, 1], SPACING_QUANTILES)
 

@@ -126,6 +126,49 @@ def test_floors_keep_sparse_tiles_and_the_exact_total(ratio):
         assert (budgets <= floors).all()
 
 
+@pytest.mark.parametrize("ratio", [0.5, 0.1, 0.01])
+def test_extras_add_to_one_fill_rate_and_the_total_stays_exact(ratio):
+    """Quotas c * weight + extra: tiles away from their floors and counts keep one rate c per unit of weight
+    above their extras (one fill rate across the scan), the total is exact, and extras beyond it are
+    scaled down rather than overshooting it."""
+    rng = np.random.default_rng(4)
+    counts = rng.integers(2_000, 40_000, size=30)
+    weights = counts * rng.uniform(1.0, 2.5, size=len(counts))
+    extra = np.where(rng.random(len(counts)) < 0.3, rng.uniform(0, 0.1 * ratio * counts), 0.0)
+    budgets = tile_budgets(counts, ratio, np.ones_like(counts), weights, extra)
+    target = kept_count(ratio, int(counts.sum()))
+    assert budgets.sum() == target and (budgets <= counts).all()
+    rate = (target - extra.sum()) / weights.sum()
+    assert (np.abs(budgets - (rate * weights + extra)) < 1 + 1e-9).all()  # one rate, up to the integer rounding
+    assert (tile_budgets(counts, ratio, np.ones_like(counts), weights, 0 * extra)
+            == tile_budgets(counts, ratio, np.ones_like(counts), weights)).all()
+    crowded = tile_budgets(counts, ratio, np.ones_like(counts), weights, np.full(len(counts), float(counts.max())))
+    assert crowded.sum() == target and (crowded <= counts).all()
+
+
+def test_hole_voxels_are_the_voxels_a_trial_fill_missed():
+    """A dense plane with a sparse strip: picks of the dense part leave the strip's voxels empty; counted on the
+    core's grid (a subset's own minimum would shift its grid), at a voxel edge of sqrt(pi) x the radius."""
+    from tiling.budgets import DISC_EDGE, hole_voxels, occupied_voxels
+
+    rng = np.random.default_rng(9)
+    plane = np.column_stack([rng.uniform([0, 0], [10, 10], size=(20_000, 2)), np.zeros(20_000)])
+    strip = np.column_stack([rng.uniform([10, 0], [20, 10], size=(300, 2)), np.zeros(300)])
+    core = np.concatenate([plane, strip]) + [3.3, -7.1, 2.0]
+    picks = core[:20_000:10]  # the plane's points only
+    sizes = 0.25 * 2.0 ** np.arange(0, 5)
+    origin = core.min(axis=0)
+    occupied, filled = occupied_voxels(core, sizes, origin), occupied_voxels(picks, sizes, origin)
+    assert (filled <= occupied).all() and (occupied_voxels(picks, sizes) != filled).any()
+    radius = sizes[2] / DISC_EDGE
+    edge = sizes[2]
+    expected = len(set(map(tuple, np.floor((core - origin) / edge).astype(int))) -
+                   set(map(tuple, np.floor((picks - origin) / edge).astype(int))))
+    holes = hole_voxels(occupied[None, :], filled[None, :], sizes, radius)
+    assert holes[0] == pytest.approx(expected)
+    assert 0.8 * 10 * 10 / edge**2 < expected <= 10 * 10 / edge**2 + 2 * 10 / edge + 1  # the strip's voxels
+
+
 def test_floors_are_occupied_cells():
     xyz = np.array([[0.5, 0.5, 0], [0.6, 0.5, 0], [3.5, 0.5, 0], [90.0, 90.0, 0]])
     grid = DensityGrid.covering(xyz.min(0), xyz.max(0), tile_size=8)  # 1-unit cells, 8 per tile

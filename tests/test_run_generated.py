@@ -29,6 +29,16 @@ def write_dense_patch(path: Path, n: int = 120_000, seed: int = 0) -> None:
     las.write(path)
 
 
+def write_flat_scene(path: Path, xy: np.ndarray, noise: float, rng: np.random.Generator) -> laspy.LasData:
+    """(n, 2) metres of ground at 500 km E / 4,000 km N, z drawn as Gaussian noise of `noise` m, written as LAS."""
+    header = laspy.LasHeader(version="1.2", point_format=3)
+    header.scales, header.offsets = [0.001] * 3, [500_000.0, 4_000_000.0, 0.0]
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = 500_000 + xy[:, 0], 4_000_000 + xy[:, 1], noise * rng.normal(size=len(xy))
+    las.write(path)
+    return las
+
+
 def cross_tile_close_pairs(store: Path, tolerance: float) -> int:
     """Pairs of output points from different tiles closer than tolerance (tiles from the zarr tile index)."""
     group = zarr.open_group(str(store), mode="r")
@@ -83,12 +93,8 @@ def test_a_tile_far_larger_than_the_scan_still_finds_its_spacing(tmp_path):
     coarse for the sparse part (largest gap 0.83 m as one tile against 0.26 m tiled, before)."""
     rng = np.random.default_rng(3)
     xy = np.concatenate([rng.uniform(0, 5, size=(20_000, 2)), rng.uniform(0, 20, size=(2_000, 2))])  # dense corner
-    header = laspy.LasHeader(version="1.2", point_format=3)
-    header.scales, header.offsets = [0.001] * 3, [500_000.0, 4_000_000.0, 0.0]
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = 500_000 + xy[:, 0], 4_000_000 + xy[:, 1], 0.05 * rng.normal(size=len(xy))
     scene = tmp_path / "scene.las"
-    las.write(scene)
+    las = write_flat_scene(scene, xy, 0.05, rng)
     scanned = np.column_stack([las.x, las.y, las.z])
 
     def largest_gap(out: Path) -> float:
@@ -106,15 +112,34 @@ def test_fps_budgets_follow_area_not_point_count(tmp_path):
     halves, as one pass would (budgets in proportion to counts would keep ten times more on the left)."""
     rng = np.random.default_rng(3)
     xy = np.concatenate([rng.uniform([0, 0], [8, 16], size=(50_000, 2)), rng.uniform([8, 0], [16, 16], size=(5_000, 2))])
-    header = laspy.LasHeader(version="1.2", point_format=3)
-    header.scales, header.offsets = [0.001] * 3, [500_000.0, 4_000_000.0, 0.0]
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = 500_000 + xy[:, 0], 4_000_000 + xy[:, 1], 0.01 * rng.normal(size=len(xy))
-    las.write(tmp_path / "two.las")
+    write_flat_scene(tmp_path / "two.las", xy, 0.01, rng)
     pipeline.run(tmp_path / "two.las", tmp_path / "fps.las", ratio=0.04, method="fps", tile_size=4.0, workers=1)
     kept_x = laspy.read(tmp_path / "fps.las").x - 500_000
     left, right = (kept_x < 8).sum(), (kept_x >= 8).sum()
     assert left + right == 2_200 and 0.75 < left / right < 1.33
+
+
+def test_a_tile_with_holes_fills_its_dense_part_at_the_scans_rate(tmp_path):
+    """Two 8 m tiles, both dense over most of their area, the right one also holding a sparse strip: the
+    right tile's budget is its fill share plus its holes, so its dense part keeps the share the left
+    tile's does: one fill rate across the scan, as one pass would have. (With a floor of a point per voxel
+    of the hole radius instead, the right tile paid for its holes from its own fill: 0.84x the left's
+    share, a step in density at the seam.)"""
+    rng = np.random.default_rng(5)
+    dense = rng.uniform([0, 0], [12, 8], size=(96_000, 2))
+    sparse = rng.uniform([12, 0], [16, 8], size=(1_200, 2))
+    xy = np.concatenate([dense, sparse])
+    scene = tmp_path / "scene.las"
+    write_flat_scene(scene, xy, 0.01, rng)
+    pipeline.run(scene, tmp_path / "out.las", ratio=0.1, method="stratified", tile_size=8.0, merge_tile_points=0,
+                 workers=1)
+    kept_x = laspy.read(tmp_path / "out.las").x - 500_000
+
+    def share(low: float, high: float) -> float:
+        return ((kept_x >= low) & (kept_x < high)).sum() / (0.1 * ((xy[:, 0] >= low) & (xy[:, 0] < high)).sum())
+
+    assert share(12, 16) > 1.5  # the sparse strip's holes are covered
+    assert 0.9 < share(8, 12) / share(0, 8) < 1.1
 
 
 @pytest.mark.parametrize("method", ["fps", "learned"])

@@ -27,8 +27,8 @@ from pipeline.io.writers import write_output
 from pipeline.progress import Progress, counted
 from tiling.assemble import level_parts, seam_rejections
 from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
-from tiling.budgets import (coverage_weights, even_spacing, grouped_budgets, nested_budgets, pooled_median,
-                            saliency_weights, voxels_at)
+from tiling.budgets import (coverage_weights, even_spacing, grouped_budgets, hole_voxels, nested_budgets,
+                            pooled_median, saliency_weights, voxels_at)
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice
 
@@ -158,19 +158,21 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
     counts (None unsurveyed): a method that spaces points evenly or follows saliency surveys every tile
     first, so tiles share out the points as one pass over the whole scan would."""
     target = kept_count(config.ratio, int(counts.sum()))
-    weights, floors, fill, voxels = None, np.minimum(counts, 1), None, None  # no tile left empty
+    weights, floors, holes, fill, voxels = None, np.minimum(counts, 1), None, None, None  # no tile left empty
     simplifier = config.simplifier
     if simplifier.spaces_evenly or isinstance(simplifier, Fill):
         surveys, sizes = survey_scan(client, plan, slices, work, config, target, progress)
         occupied = np.array([survey.occupied for survey in surveys])
         voxels = [VoxelCounts(sizes, survey.occupied) for survey in surveys]
-        if isinstance(simplifier, Fill):  # saliency shared as one pass would; a point in every voxel of the
-            weights, fill = scan_fill(surveys, occupied, sizes, target,  # hole radius, so every tile keeps
-                                      simplifier.cover_spacings)  # enough to cover its holes
-            floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)
+        if isinstance(simplifier, Fill):  # saliency shared as one pass would: one fill rate for every tile,
+            weights, fill = scan_fill(surveys, occupied, sizes, target,  # plus a point for each hole its trial
+                                      simplifier.cover_spacings)  # fill left, and at least a point in every
+            holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes,  # voxel of the
+                                fill.cover_radius)  # hole radius, so a sparse tile can cover all its holes
+            floors = np.maximum(floors, np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64))
         else:  # spaced evenly: tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
-    budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights)
+    budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights, extra=holes)
     return budgets, fill, voxels
 
 

@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 
 from model.methods import Fill, Method
-from model.rules import grid_xyz, kept_count, take_records
+from model.rules import column_min, grid_xyz, kept_count, take_records
 from model.selection import FillContext, FillLoss, Selection, Tile, VoxelCounts
-from model.stratified import pick_spacings
+from model.stratified import pick_spacings, trial_fill
 from pipeline.engine.classes import ClassRule, class_histogram
 from pipeline.engine.workdir import BucketedPiece, WorkDir, save_npz, write_atomically
 from pipeline.io.scan import Piece, Scan
@@ -167,7 +167,8 @@ class SurveyJob:
 @dataclass(frozen=True)
 class TileSurvey:
     """What a tile tells the run: occupied voxels (levels,), its core count, mean absolute fill loss,
-    the relative loss summed over the core, and (quantiles,) spacings of a trial fill's picks, of `picks`."""
+    the relative loss summed over the core, (quantiles,) spacings of a trial fill's picks, of `picks`, and
+    the voxels (levels,) those picks occupy, on the core's grids (zeros for a method with no fill)."""
 
     occupied: np.ndarray
     core_count: int
@@ -175,24 +176,29 @@ class TileSurvey:
     loss_sum: float
     spacings: np.ndarray
     picks: int
+    filled: np.ndarray
 
 
 def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     """Measure one tile at the scan's ratio and keep the measurement in the work folder (a resumed run reads it)."""
     tile, _, _ = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap, job.seed,
                            job.rule)
-    occupied = occupied_voxels(tile.xyz if tile.core.all() else tile.xyz[tile.core], np.asarray(job.sizes))
+    core_xyz = tile.xyz if tile.core.all() else tile.xyz[tile.core]
+    origin = column_min(core_xyz) if len(core_xyz) else np.zeros(3)
+    sizes = np.asarray(job.sizes)
+    occupied = occupied_voxels(core_xyz, sizes, origin)
     budget = kept_count(job.ratio, tile.core_count)
-    loss, spacings = FillLoss(None, 0.0), np.empty(0)
+    loss, spacings, filled = FillLoss(None, 0.0), np.empty(0), np.zeros_like(occupied)
     if isinstance(job.simplifier, Fill) and budget > 0:
         loss = job.simplifier.fill_loss(tile, budget)
-        spacings = pick_spacings(tile, budget, loss)
+        picks = tile.xyz[trial_fill(tile, budget, loss)]
+        spacings, filled = pick_spacings(picks), occupied_voxels(picks, sizes, origin)
     loss_sum = float(loss.relative[tile.core].sum()) if loss.relative is not None else 0.0
-    survey = TileSurvey(occupied, tile.core_count, loss.level, loss_sum, spacings, budget)
+    survey = TileSurvey(occupied, tile.core_count, loss.level, loss_sum, spacings, budget, filled)
     arrays = {} if loss.relative is None else {"relative": loss.relative.astype(np.float32)}
     write_atomically(Path(job.survey_path), lambda tmp: save_npz(
         tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
-        spacings=spacings, picks=budget, **arrays))
+        spacings=spacings, picks=budget, filled=filled, **arrays))
     return survey
 
 
@@ -200,7 +206,7 @@ def load_survey(path: Path) -> TileSurvey:
     """A finished survey's summary (the per-point loss stays on disk)."""
     with np.load(path) as saved:
         return TileSurvey(saved["occupied"], int(saved["core_count"]), float(saved["level"]), float(saved["loss_sum"]),
-                          saved["spacings"], int(saved["picks"]))
+                          saved["spacings"], int(saved["picks"]), saved["filled"])
 
 
 def load_fill_loss(path: Path) -> FillLoss:
