@@ -90,6 +90,13 @@ def test_a_split_cells_tiles_share_the_budget_the_whole_cell_would_get():
     assert np.abs(grouped[1:4] - whole[1] * weights[1:4] / weights[1:4].sum()).max() < 1  # by weight, not floor
     alone = np.arange(len(counts))
     assert grouped_budgets(counts, 0.1, alone, floors, weights).tolist() == tile_budgets(counts, 0.1, floors, weights).tolist()
+    extra = np.array([30.0, 10, 0, 20, 0, 5])  # holes: a group's are summed, then its parts get theirs on top
+    grouped = grouped_budgets(counts, 0.1, groups, floors, weights, extra)
+    whole = tile_budgets(np.array([500, 8_000, 10, 700]), 0.1, np.array([50, 120, 5, 60]),
+                         np.array([600.0, 8_800, 10, 700]), np.array([30.0, 30, 0, 5]))
+    assert grouped.sum() == kept_count(0.1, int(counts.sum())) and grouped[1:4].sum() == whole[1]
+    rate = (whole[1] - 30) / weights[1:4].sum()
+    assert np.abs(grouped[1:4] - (rate * weights[1:4] + extra[1:4])).max() < 1
 
 
 def test_all_identical_points_make_one_tile():
