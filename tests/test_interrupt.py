@@ -74,11 +74,21 @@ def sync_interrupted_before_it_starts(loop: object) -> None:
     """A blocking client call stopped by a real SIGINT while the Dask event loop is still busy, so the stop
     lands before the call's coroutine has begun (the race distributed's `sync` mishandles)."""
     from distributed.utils import sync
-    loop.add_callback(time.sleep, 0.5)  # the loop thread is busy while the signal arrives
-    threading.Timer(0.1, os.kill, (os.getpid(), signal.SIGINT)).start()
+    sent = threading.Event()
+
+    def busy() -> None:  # the loop thread is held until the signal is out (timed sleeps lost the race on a busy CI)
+        sent.wait(timeout=30)
+        time.sleep(0.3)  # and the main thread has had time to take it
+
+    def stop() -> None:
+        os.kill(os.getpid(), signal.SIGINT)
+        sent.set()
+
+    loop.add_callback(busy)
+    threading.Timer(0.1, stop).start()
     with pytest.raises(KeyboardInterrupt):
         sync(loop, asyncio.sleep, 0)
-    time.sleep(0.8)  # the loop runs the queued call, then the cancel callback
+    sync(loop, asyncio.sleep, 0)  # the loop runs its callbacks in order: the interrupted call's and its cancel first
 
 
 def test_a_stop_before_a_client_call_starts_logs_no_dask_traceback(caplog):
