@@ -74,20 +74,26 @@ def sync_interrupted_before_it_starts(loop: object) -> None:
     """A blocking client call stopped by a real SIGINT while the Dask event loop is still busy, so the stop
     lands before the call's coroutine has begun (the race distributed's `sync` mishandles)."""
     from distributed.utils import sync
-    sent = threading.Event()
+    sent, main = threading.Event(), threading.main_thread().ident
 
-    def busy() -> None:  # the loop thread is held until the signal is out (timed sleeps lost the race on a busy CI)
+    def busy() -> None:  # the loop thread is held until the signal is out (timed sleeps lost the race in CI)
         sent.wait(timeout=30)
         time.sleep(0.3)  # and the main thread has had time to take it
 
-    def stop() -> None:
-        os.kill(os.getpid(), signal.SIGINT)
+    def stop() -> None:  # to the main thread itself: sent to the process, the kernel may hand it to another
+        signal.pthread_kill(main, signal.SIGINT)  # thread, and the main thread's wait is then not interrupted
         sent.set()
 
-    loop.add_callback(busy)
-    threading.Timer(0.1, stop).start()
-    with pytest.raises(KeyboardInterrupt):
-        sync(loop, asyncio.sleep, 0)
+    # Python's own SIGINT handler, whatever this process inherited: started in the background of a
+    # non-interactive shell (`.ci/run &`), a process ignores SIGINT and no KeyboardInterrupt would come
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        loop.add_callback(busy)
+        threading.Timer(0.1, stop).start()
+        with pytest.raises(KeyboardInterrupt):
+            sync(loop, asyncio.sleep, 0)
+    finally:
+        signal.signal(signal.SIGINT, previous)
     sync(loop, asyncio.sleep, 0)  # the loop runs its callbacks in order: the interrupted call's and its cancel first
 
 
