@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from model.rules import kept_count
-from tiling.budgets import grouped_budgets, tile_budgets
+from tiling.budgets import grouped_budgets, shared_budgets, tile_budgets
 from tiling.plan import SUB_CELLS, DensityGrid, crowded_cells, plan_tiles
 
 
@@ -151,6 +151,33 @@ def test_extras_add_to_one_fill_rate_and_the_total_stays_exact(ratio):
             == tile_budgets(counts, ratio, np.ones_like(counts), weights)).all()
     crowded = tile_budgets(counts, ratio, np.ones_like(counts), weights, np.full(len(counts), float(counts.max())))
     assert crowded.sum() == target and (crowded <= counts).all()
+
+
+def test_budgets_are_the_clipped_rate_a_bisection_finds_whatever_the_floors_counts_and_extras():
+    """Quotas min(count, max(floor, c * weight + extra)) summing to the target, against c found by bisection, on
+    small adversarial tiles: floors, counts and extras pulling different tiles both ways at once (pinning both
+    sides in one pass once gave 1,400 points for a target of 1,250)."""
+    rng = np.random.default_rng(11)
+    for _ in range(3_000):
+        n = int(rng.integers(1, 8))
+        counts = rng.integers(0, 50, n)
+        floors, weights = rng.integers(0, 20, n), rng.uniform(0.1, 10, n)
+        extra = rng.uniform(0, 40, n) * (rng.random(n) < 0.6)
+        target = int(rng.integers(0, counts.sum() + 1))
+        budgets = shared_budgets(counts, target, floors, weights, extra)
+        assert budgets.sum() == target and (budgets >= 0).all() and (budgets <= counts).all()
+        lowest = np.minimum(np.maximum(np.minimum(floors, counts), extra), counts)
+        if lowest.sum() >= target:
+            continue
+        clipped = lambda rate: np.minimum(counts, np.maximum(np.minimum(floors, counts), rate * weights + extra))
+        low, high = 0.0, 1.0
+        while clipped(high).sum() < target:
+            high *= 2
+        for _ in range(200):
+            low, high = (low, (low + high) / 2) if clipped((low + high) / 2).sum() >= target else ((low + high) / 2, high)
+        assert (np.abs(budgets - clipped(high)) < 1 + 1e-6).all() and (budgets >= np.minimum(floors, counts)).all()
+    assert tile_budgets(np.array([2_000, 500]), 0.5, np.array([900, 1]), np.array([2_000.0, 2_000.0]),
+                        np.array([0.0, 100.0])).tolist() == [900, 350]
 
 
 def test_hole_voxels_are_the_voxels_a_trial_fill_missed():

@@ -63,11 +63,18 @@ def shared_budgets(counts: np.ndarray, target: int, floors: np.ndarray | None = 
         scale = ((target - floors[low].sum() - counts[high].sum() - extra[free].sum())
                  / max(float(weights[free].sum()), 1e-300))
         quotas = scale * weights + extra
-        newly_low, newly_high = free & (quotas < floors), free & (quotas > counts)
-        if not (newly_low.any() or newly_high.any()):
+        under, over = free & (quotas < floors), free & (quotas > counts)
+        if not (under.any() or over.any()):
             break
-        low |= newly_low
-        high |= newly_high
+        # clipped to floors and counts the free quotas sum to the target plus `raised - cut`: if positive, the
+        # final rate is lower than this one, so the tiles under their floors stay there (and those over their
+        # counts may not); otherwise the ones over their counts stay there. Pinning both sides at once could
+        # pin one wrongly for good and miss the total (counts 2000/500, floors 900/1, ratio 0.5: 1,400 for 1,250)
+        raised, cut = float((floors[under] - quotas[under]).sum()), float((quotas[over] - counts[over]).sum())
+        if raised > cut or not over.any():
+            low |= under
+        else:
+            high |= over
     quotas = np.where(low, floors, np.where(high, counts, quotas))
     return largest_remainder(quotas, counts, target, minimum=floors)
 
