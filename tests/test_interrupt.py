@@ -74,26 +74,27 @@ def sync_interrupted_before_it_starts(loop: object) -> None:
     """A blocking client call stopped by a real SIGINT while the Dask event loop is still busy, so the stop
     lands before the call's coroutine has begun (the race distributed's `sync` mishandles)."""
     from distributed.utils import sync
-    sent, main = threading.Event(), threading.main_thread().ident
+    caught, main = threading.Event(), threading.main_thread().ident
 
-    def busy() -> None:  # the loop thread is held until the signal is out (timed sleeps lost the race in CI)
-        sent.wait(timeout=30)
-        time.sleep(0.3)  # and the main thread has had time to take it
+    def busy() -> None:  # the loop thread is held until the main thread has taken the interrupt (sleeps of
+        caught.wait(timeout=30)  # fixed length lost the race in CI)
 
     def stop() -> None:  # to the main thread itself: sent to the process, the kernel may hand it to another
         signal.pthread_kill(main, signal.SIGINT)  # thread, and the main thread's wait is then not interrupted
-        sent.set()
 
     # Python's own SIGINT handler, whatever this process inherited: started in the background of a
     # non-interactive shell (`.ci/run &`), a process ignores SIGINT and no KeyboardInterrupt would come
     previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         loop.add_callback(busy)
-        threading.Timer(0.1, stop).start()
-        with pytest.raises(KeyboardInterrupt):
-            sync(loop, asyncio.sleep, 0)
+        with pytest.raises(KeyboardInterrupt):  # a signal early for `sync` still lands in here
+            threading.Timer(0.1, stop).start()
+            try:
+                sync(loop, asyncio.sleep, 0)
+            finally:
+                caught.set()
     finally:
-        signal.signal(signal.SIGINT, previous)
+        signal.signal(signal.SIGINT, signal.SIG_DFL if previous is None else previous)
     sync(loop, asyncio.sleep, 0)  # the loop runs its callbacks in order: the interrupted call's and its cancel first
 
 
