@@ -174,7 +174,8 @@ def test_budgets_are_the_clipped_rate_a_bisection_finds_whatever_the_floors_coun
         while clipped(high).sum() < target:
             high *= 2
         for _ in range(200):
-            low, high = (low, (low + high) / 2) if clipped((low + high) / 2).sum() >= target else ((low + high) / 2, high)
+            middle = (low + high) / 2
+            low, high = (low, middle) if clipped(middle).sum() >= target else (middle, high)
         assert (np.abs(budgets - clipped(high)) < 1 + 1e-6).all() and (budgets >= np.minimum(floors, counts)).all()
     assert tile_budgets(np.array([2_000, 500]), 0.5, np.array([900, 1]), np.array([2_000.0, 2_000.0]),
                         np.array([0.0, 100.0])).tolist() == [900, 350]

@@ -34,9 +34,8 @@ def grouped_budgets(counts: np.ndarray, ratio: float, groups: np.ndarray, floors
     ids, members = np.unique(groups, return_inverse=True)
     if len(ids) == len(counts):
         return tile_budgets(counts, ratio, floors, weights, extra)
-    totals = tile_budgets(np.bincount(members, counts, len(ids)).astype(np.int64), ratio,
-                          np.bincount(members, floors, len(ids)).astype(np.int64), np.bincount(members, weights, len(ids)),
-                          np.bincount(members, extra, len(ids)))
+    summed = [np.bincount(members, values, len(ids)) for values in (counts, floors, weights, extra)]
+    totals = tile_budgets(summed[0].astype(np.int64), ratio, summed[1].astype(np.int64), summed[2], summed[3])
     budgets = np.zeros_like(counts)
     for group, total in enumerate(totals):
         tiles = np.flatnonzero(members == group)
@@ -95,17 +94,19 @@ def largest_remainder(quotas: np.ndarray, caps: np.ndarray, target: int, minimum
 def occupied_voxels(xyz: np.ndarray, sizes: np.ndarray, origin: np.ndarray | None = None) -> np.ndarray:
     """(len(sizes),) number of occupied cubic voxels of each edge length among the (n, 3) points, on grids
     from `origin` (3,) (the points' minimum by default; at most it, so a subset of a cloud is counted on
-    the cloud's grids); `sizes` ascending, each twice the one before (the survey's levels), so each level's voxels are the last
-    level's occupied ones halved: floor(x / 2s) = floor(x / s) >> 1 exactly, since dividing by a power
-    of two is exact in floating point. Once the voxels fit a Z-order code, one sort serves every level
-    left, halving being a shift of the sorted codes (1.7x faster than a sort per level on bcts tiles)."""
+    the cloud's grids); `sizes` ascending, each twice the one before (the survey's levels), so each
+    level's voxels are the last level's occupied ones halved: floor(x / 2s) = floor(x / s) >> 1 exactly,
+    since dividing by a power of two is exact in floating point. Once the voxels fit a Z-order code, one
+    sort serves every level left, halving being a shift of the sorted codes (1.7x faster than a sort per
+    level on bcts tiles)."""
     sizes = np.asarray(sizes, dtype=np.float64)
     if np.any(sizes[1:] != 2 * sizes[:-1]):
         raise ValueError(f"voxel sizes must double from one level to the next, not {sizes.tolist()}")
     counts = np.zeros(len(sizes), dtype=np.int64)
     if len(xyz) == 0:
         return counts
-    cells = np.floor((xyz - (column_min(xyz) if origin is None else origin)) / sizes[0]).astype(np.int64)  # (m, 3) occupied voxels so far
+    origin = column_min(xyz) if origin is None else origin
+    cells = np.floor((xyz - origin) / sizes[0]).astype(np.int64)  # (m, 3) occupied voxels so far
     level = 0
     while level < len(sizes) and cells.max() >= MORTON_STEPS:  # too many voxels across for a code
         span = column_max(cells) + 1

@@ -164,12 +164,13 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
         surveys, sizes = survey_scan(client, plan, slices, work, config, target, progress)
         occupied = np.array([survey.occupied for survey in surveys])
         voxels = [VoxelCounts(sizes, survey.occupied) for survey in surveys]
-        if isinstance(simplifier, Fill):  # saliency shared as one pass would: one fill rate for every tile,
-            weights, fill = scan_fill(surveys, occupied, sizes, target,  # plus a point for each hole its trial
-                                      simplifier.cover_spacings)  # fill left, and at least a point in every
-            holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes,  # voxel of the
-                                fill.cover_radius)  # hole radius, so a sparse tile can cover all its holes
-            floors = np.maximum(floors, np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64))
+        if isinstance(simplifier, Fill):
+            # saliency shared as one pass would: one fill rate for every tile, plus a point for each hole its
+            # trial fill left, and at least a point in every voxel of the hole radius, so a sparse tile can
+            # cover all its holes
+            weights, fill = scan_fill(surveys, occupied, sizes, target, simplifier.cover_spacings)
+            holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes, fill.cover_radius)
+            floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)
         else:  # spaced evenly: tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
     budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights, extra=holes)

@@ -183,16 +183,14 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     """Measure one tile at the scan's ratio and keep the measurement in the work folder (a resumed run reads it)."""
     tile, _, _ = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap, job.seed,
                            job.rule)
-    core_xyz = tile.xyz if tile.core.all() else tile.xyz[tile.core]
-    origin = column_min(core_xyz) if len(core_xyz) else np.zeros(3)
-    sizes = np.asarray(job.sizes)
-    occupied = occupied_voxels(core_xyz, sizes, origin)
+    core_xyz, sizes = tile.xyz if tile.core.all() else tile.xyz[tile.core], np.asarray(job.sizes)
+    occupied = occupied_voxels(core_xyz, sizes)
     budget = kept_count(job.ratio, tile.core_count)
     loss, spacings, filled = FillLoss(None, 0.0), np.empty(0), np.zeros_like(occupied)
     if isinstance(job.simplifier, Fill) and budget > 0:
         loss = job.simplifier.fill_loss(tile, budget)
         picks = tile.xyz[trial_fill(tile, budget, loss)]
-        spacings, filled = pick_spacings(picks), occupied_voxels(picks, sizes, origin)
+        spacings, filled = pick_spacings(picks), occupied_voxels(picks, sizes, origin=column_min(core_xyz))
     loss_sum = float(loss.relative[tile.core].sum()) if loss.relative is not None else 0.0
     survey = TileSurvey(occupied, tile.core_count, loss.level, loss_sum, spacings, budget, filled)
     arrays = {} if loss.relative is None else {"relative": loss.relative.astype(np.float32)}
