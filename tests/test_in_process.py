@@ -54,6 +54,7 @@ def test_a_failing_task_is_one_line_and_the_tasks_not_started_are_cancelled():
         ran.append(item)
         if item == 0:
             raise ValueError("bad tile")
+        time.sleep(0.05)  # a tile takes a while: with none, the one thread can run them all before the failure is read
         return item
 
     with in_process(1) as pool:
@@ -115,6 +116,18 @@ def test_the_methods_light_on_the_gil_are_the_compiled_ones():
     from model.registry import REGISTERED
 
     assert {name for name, method in REGISTERED.items() if method.light_on_gil} == {"fps", "voxel", "random"}
+
+
+def test_task_threads_hold_openmp_to_one_thread_as_workers_do():
+    """pykdtree's kNN runs on OpenMP, whose thread count is per thread: the run's own limit must reach the
+    task threads, or `--workers 1` uses every core."""
+    import pykdtree.kdtree  # noqa: F401  (loads the OpenMP runtime the kNN uses)
+    from threadpoolctl import threadpool_info
+
+    with in_process(2) as pool:
+        seen = map_tasks(pool, lambda item: threadpool_info(), [0, 1], desc="test", progress=OFF)
+    openmp = [info for infos in seen for info in infos if info["user_api"] == "openmp"]
+    assert openmp and all(info["num_threads"] == 1 for info in openmp)
 
 
 def test_the_in_process_run_gives_back_its_thread_settings():
