@@ -29,6 +29,9 @@ class Method:
     light_on_gil: ClassVar[bool] = False     # True: its work runs in compiled code (numpy, fpsample), so threads of
                                              # one process beat a cluster's start on bigger scans (measured; fpsample
                                              # itself keeps the GIL: its picks go one thread at a time)
+    picks_hold_gil: ClassVar[bool] = False   # True: its picking holds the GIL throughout (fpsample), so a run on
+                                             # threads of one process picks in worker processes instead (from 2M
+                                             # points: pipeline.engine.processes)
     sees_tile_extent: ClassVar[bool] = False  # True: its picks depend on how far a tile reaches, so the run does not
                                               # merge sparse tiles for it (pipeline.config.RunConfig.merge_limit)
 
@@ -67,6 +70,7 @@ class Fps(Method):
     reads_halo: ClassVar[bool] = False
     spaces_evenly: ClassVar[bool] = True
     light_on_gil: ClassVar[bool] = True
+    picks_hold_gil: ClassVar[bool] = True
 
     def __call__(self, tile: Tile, budget: int) -> Selection:
         return fps_simplify(tile, budget)

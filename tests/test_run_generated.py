@@ -155,6 +155,19 @@ def test_one_and_two_workers_and_this_process_give_identical_bytes(tmp_path, den
     assert outputs[0] == outputs[1] == outputs[2]
 
 
+def test_fps_picking_in_worker_processes_gives_the_threads_bytes(tmp_path, dense_patch, monkeypatch):
+    """From PROCESS_PICKING_POINTS (here 0) an in-process fps run picks in forkserver processes: the same file."""
+    import pipeline.engine.processes as processes
+
+    threads = tmp_path / "threads.laz"
+    pipeline.run(dense_patch, threads, ratio=0.1, method="fps", tile_size=4.0, seed=7, workers=2)
+    monkeypatch.setattr(processes, "PROCESS_PICKING_POINTS", 0)
+    assert processes.picks_in_processes(120_000, 2, True)
+    elsewhere = tmp_path / "processes.laz"
+    pipeline.run(dense_patch, elsewhere, ratio=0.1, method="fps", tile_size=4.0, seed=7, workers=2)
+    assert elsewhere.read_bytes() == threads.read_bytes()
+
+
 @pytest.mark.filterwarnings("error::RuntimeWarning")  # a resumed phase with no task left once warned of an empty mean
 @pytest.mark.parametrize("method", ["voxel", "stratified"])
 def test_a_run_that_failed_after_its_survey_resumes_to_the_same_bytes(tmp_path, dense_patch, monkeypatch, method):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import Executor, as_completed
+from concurrent.futures.process import BrokenProcessPool
 from typing import TYPE_CHECKING, Any, Callable, ContextManager, Sequence
 
 import numpy as np
@@ -16,12 +17,13 @@ if TYPE_CHECKING:
     from dask.distributed import Client
 
 
-def cluster(workers: int, memory_limit: str, scheduler: str | None,
-            here: bool = False) -> ContextManager[Client | Executor]:
+def cluster(workers: int, memory_limit: str, scheduler: str | None, here: bool = False,
+            picking_processes: bool = False) -> ContextManager[Client | Executor]:
     """The scheduler's cluster when one is named, else `workers` threads of this process when `here`
-    (capped at the cores, as local workers are), else a fresh local cluster."""
+    (capped at the cores, as local workers are; with `picking_processes`, the tiles' picking in as many
+    worker processes), else a fresh local cluster."""
     if here and not scheduler:
-        return in_process(local_workers(workers))
+        return in_process(local_workers(workers), picking_processes)
     from pipeline.engine.dask_cluster import connect, local_cluster
 
     return connect(scheduler) if scheduler else local_cluster(workers, memory_limit)
@@ -119,6 +121,8 @@ def _map_here(pool: Executor, function: Callable, items: Sequence[Any], shared: 
                     results[futures[future]] = future.result()
                 except (PipelineError, KeyboardInterrupt):
                     raise
+                except BrokenProcessPool:  # a picking process was killed (out of memory?) or crashed
+                    raise PipelineError(f"{desc}: a worker process died (killed, or out of memory?)") from None
                 except Exception as exc:
                     raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
                 phase.update(1, weight(results[futures[future]]))

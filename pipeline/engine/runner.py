@@ -20,6 +20,7 @@ from pipeline.engine.phases import (RESERVE_SHARE, bucket_scan, core_points, cro
 from pipeline.engine.preflight import check_room, check_run
 from pipeline.engine.stop_guard import StopGuard
 from pipeline.engine.tasks import simplify_tile
+from pipeline.engine.processes import picks_in_processes
 from pipeline.engine.threads import local_workers, runs_in_process
 from pipeline.engine.workdir import WorkDir, output_settings
 from pipeline.errors import Interrupted, PipelineError, signal_exit_code
@@ -122,9 +123,11 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     written = None
     guard = StopGuard(stop_grace_s)
     try:
-        here = runs_in_process(scan.point_count, config.in_process_points, local_workers(config.workers),
-                               config.simplifier.light_on_gil)
-        with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here) as active:
+        threads = local_workers(config.workers)
+        here = runs_in_process(scan.point_count, config.in_process_points, threads, config.simplifier.light_on_gil)
+        elsewhere = picks_in_processes(scan.point_count, threads, config.simplifier.picks_hold_gil)
+        with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here,
+                                                        elsewhere) as active:
             try:
                 written, tiles, resumed, kept_whole = simplify_scan(scan, outputs, config, settings, work, active, clock,
                                                                     progress or Progress(), note or (lambda line: None))

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 import os
 import sys
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Iterator
 
 from threadpoolctl import threadpool_limits
 
 ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
+WORKER_PRELOAD = "pipeline.engine.worker_setup"  # what a worker process imports first: the tasks, signals left to the run
 
 
 def available_cores() -> int:
@@ -49,9 +50,11 @@ def one_openmp_thread() -> None:
 
 
 @contextmanager
-def in_process(threads: int = 1) -> Iterator[ThreadPoolExecutor]:
+def in_process(threads: int = 1, picking_processes: bool = False) -> Iterator[Executor]:
     """A pool of `threads` task threads in this process, BLAS, OpenMP and torch held to one thread each as
-    in a worker, so the output equals a cluster run's byte for byte; they are given back afterwards.
+    in a worker, so the output equals a cluster run's byte for byte; they are given back afterwards. With
+    `picking_processes`, the tiles' picking goes to as many worker processes instead
+    (pipeline.engine.processes: for a method whose picking holds the GIL).
 
     Leaving it (also on an error or Ctrl-C) cancels the tasks not started and waits for the running ones:
     at most one tile each, and none writes after the run has said what it kept."""
@@ -64,10 +67,15 @@ def in_process(threads: int = 1) -> Iterator[ThreadPoolExecutor]:
     try:
         with threadpool_limits(limits=1), ThreadPoolExecutor(threads, thread_name_prefix="pipeline-task",
                                                             initializer=one_openmp_thread) as pool:
+            executor: Executor = pool
+            if picking_processes:
+                from pipeline.engine.processes import PickingElsewhere, picking_processes as started
+
+                executor = PickingElsewhere(pool, started(threads))
             try:
-                yield pool
+                yield executor
             finally:
-                pool.shutdown(cancel_futures=True)
+                executor.shutdown(cancel_futures=True)
     finally:
         for name, value in saved.items():
             if value is None:
