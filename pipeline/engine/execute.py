@@ -3,7 +3,7 @@ item order."""
 from __future__ import annotations
 
 import time
-from concurrent.futures import Executor, as_completed
+from concurrent.futures import FIRST_COMPLETED, Executor, wait
 from concurrent.futures.process import BrokenProcessPool
 from typing import TYPE_CHECKING, Any, Callable, ContextManager, Sequence
 
@@ -107,25 +107,48 @@ def submission_order(items: Sequence[Any], cost: Callable[[Any], int] | None) ->
     return np.argsort(costs <= costs.mean(), kind="stable")
 
 
+PROCESS_LOSSES = 3  # times a pool of picking processes may lose a worker in one phase (Dask allows a task 3 too)
+
+
 def _map_here(pool: Executor, function: Callable, items: Sequence[Any], shared: tuple, desc: str,
               progress: Progress, weight: Callable[[Any], int], cost: Callable[[Any], int] | None) -> list[Any]:
-    """map_tasks on this process's task threads: the same calls, in the same submission order, failures
-    reported as a worker's are; the first failure cancels the tasks not started."""
-    futures = {pool.submit(function, items[position], *shared): int(position)
-               for position in submission_order(items, cost)}
+    """map_tasks on this process's task threads (and picking processes: pipeline.engine.processes): the same
+    calls, in the same submission order, failures reported as a worker's are; the first failure cancels the
+    tasks not started. A pool of picking processes that loses one (killed: out of memory?) fails every task
+    it held: it is started afresh and those tasks given to it again, up to PROCESS_LOSSES times."""
+    order = [int(position) for position in submission_order(items, cost)]
+    futures = {pool.submit(function, items[position], *shared): position for position in order}
     results: list[Any] = [None] * len(items)
+    losses = 0
     with progress.phase(desc, len(items)) as phase:
         try:
-            for future in as_completed(futures):
-                try:
-                    results[futures[future]] = future.result()
-                except (PipelineError, KeyboardInterrupt):
-                    raise
-                except BrokenProcessPool:  # a picking process was killed (out of memory?) or crashed
-                    raise PipelineError(f"{desc}: a worker process died (killed, or out of memory?)") from None
-                except Exception as exc:
-                    raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
-                phase.update(1, weight(results[futures[future]]))
+            while futures:
+                done, _ = wait(futures, return_when=FIRST_COMPLETED)
+                if any(isinstance(future.exception(), BrokenProcessPool) for future in done):
+                    done, _ = wait(futures)  # the broken pool fails all it held at once: take them together
+                lost = []
+                for future in done:
+                    position = futures.pop(future)
+                    try:
+                        results[position] = future.result()
+                    except (PipelineError, KeyboardInterrupt):
+                        raise
+                    except BrokenProcessPool:
+                        lost.append(position)
+                        continue
+                    except Exception as exc:
+                        raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
+                    phase.update(1, weight(results[position]))
+                if lost:
+                    losses += 1
+                    if not hasattr(pool, "restart"):
+                        raise PipelineError(f"{desc}: a worker process died (killed, or out of memory?)")
+                    if losses > PROCESS_LOSSES:
+                        raise PipelineError(f"{desc}: worker processes died {losses} times (killed, or out of memory?)")
+                    pool.restart()
+                    again = set(lost)
+                    futures.update({pool.submit(function, items[position], *shared): position
+                                    for position in order if position in again})
         except BaseException:
             for future in futures:
                 future.cancel()

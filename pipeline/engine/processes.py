@@ -49,15 +49,23 @@ def _start(pool: ProcessPoolExecutor) -> None:
 
 
 class PickingElsewhere(Executor):
-    """An in-process run's executor: its task threads, but each tile's picking (simplify_tile) in worker
-    processes. Shutting it down waits for both, cancelling what has not started."""
+    """An in-process run's executor: its task threads, but each tile's picking (`picking`, simplify_tile) in
+    `workers` worker processes, which `restart` replaces when one has died. Shutting it down waits for both,
+    cancelling what has not started."""
 
-    def __init__(self, threads: Executor, processes: ProcessPoolExecutor) -> None:
+    def __init__(self, threads: Executor, workers: int, picking: Callable[..., Any] = simplify_tile) -> None:
         self.threads = threads
-        self.processes = processes
+        self.workers = workers
+        self.picking = picking
+        self.processes = picking_processes(workers)
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
-        return (self.processes if fn is simplify_tile else self.threads).submit(fn, *args, **kwargs)
+        return (self.processes if fn is self.picking else self.threads).submit(fn, *args, **kwargs)
+
+    def restart(self) -> None:
+        """Fresh worker processes in place of a pool that lost one (its other tasks failed with it)."""
+        self.processes.shutdown(wait=False, cancel_futures=True)
+        self.processes = picking_processes(self.workers)
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         self.threads.shutdown(wait, cancel_futures=cancel_futures)

@@ -69,9 +69,9 @@ def in_process(threads: int = 1, picking_processes: bool = False) -> Iterator[Ex
                                                             initializer=one_openmp_thread) as pool:
             executor: Executor = pool
             if picking_processes:
-                from pipeline.engine.processes import PickingElsewhere, picking_processes as started
+                from pipeline.engine.processes import PickingElsewhere
 
-                executor = PickingElsewhere(pool, started(threads))
+                executor = PickingElsewhere(pool, threads)
             try:
                 yield executor
             finally:
