@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline.engine.execute import map_tasks
-from pipeline.engine.threads import in_process, runs_in_process
+from pipeline.engine.threads import available_cores, in_process, runs_in_process
 from pipeline.errors import PipelineError
 from pipeline.io.las_source import LasSource
 from pipeline.progress import Progress
@@ -118,6 +118,7 @@ def test_the_methods_light_on_the_gil_are_the_compiled_ones():
     assert {name for name, method in REGISTERED.items() if method.light_on_gil} == {"fps", "voxel", "random"}
 
 
+@pytest.mark.skipif(available_cores() < 2, reason="one core: OpenMP's default is one thread already")
 def test_task_threads_hold_openmp_to_one_thread_as_workers_do():
     """pykdtree's kNN runs on OpenMP, whose thread count is per thread: the run's own limit must reach the
     task threads, or `--workers 1` uses every core."""

@@ -3,9 +3,12 @@ the run's threads, and a worker that dies."""
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
+import time
 from pathlib import Path
 from concurrent.futures import ThreadPoolExecutor
-from concurrent.futures.process import _RemoteTraceback
+from concurrent.futures.process import BrokenProcessPool, _RemoteTraceback
 
 import pytest
 
@@ -58,5 +61,51 @@ def test_a_pool_that_loses_a_worker_starts_afresh_and_runs_its_tasks_again(tmp_p
 
 def test_a_pool_that_keeps_losing_workers_ends_the_run_in_one_line():
     with ThreadPoolExecutor(1) as threads, PickingElsewhere(threads, 1, picking=os._exit) as executor:
-        with pytest.raises(PipelineError, match=rf"^simplify: worker processes died {PROCESS_LOSSES + 1} times "):
+        with pytest.raises(PipelineError, match=rf"^simplify: worker processes died {PROCESS_LOSSES + 1} times \(killed"):
             map_tasks(executor, os._exit, [3, 4], desc="simplify", progress=Progress("off"))
+
+
+def test_picking_processes_end_with_the_run_that_started_them(tmp_path):
+    """A run killed outright (SIGKILL, an out-of-memory kill) takes its forkserver and workers with it: a
+    worker would otherwise wait on its task queue for ever."""
+    script = tmp_path / "killed.py"
+    script.write_text(
+        "import os, signal\n"
+        "from pipeline.engine.processes import picking_processes\n"
+        "if __name__ == '__main__':\n"
+        "    pool = picking_processes(1)\n"
+        "    print(pool.submit(os.getpid).result(), flush=True)\n"
+        "    os.kill(os.getpid(), signal.SIGKILL)\n")
+    printed = tmp_path / "worker.txt"
+    with printed.open("w") as stdout:  # a file, not a pipe: a surviving worker would hold a pipe open
+        subprocess.run([sys.executable, str(script)], stdout=stdout, timeout=60)
+    worker = int(printed.read_text().split()[0])
+    for _ in range(100):  # up to 10 s
+        if not Path(f"/proc/{worker}").exists() or "State:\tZ" in Path(f"/proc/{worker}/status").read_text():
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(worker, 9)
+        pytest.fail(f"picking process {worker} outlived the killed run")
+
+
+def test_a_run_started_while_a_worker_imports_its_script_is_refused(tmp_path, monkeypatch):
+    """A script without a __main__ guard, re-imported by a worker, must not start a second run on its files."""
+    import multiprocessing
+
+    import pipeline
+
+    monkeypatch.setattr(multiprocessing.current_process(), "_inheriting", True, raising=False)
+    with pytest.raises(PipelineError, match="__name__ == \"__main__\""):
+        pipeline.run(tmp_path / "scan.laz", tmp_path / "out.laz", ratio=0.1)
+
+
+def test_a_pool_broken_before_a_phase_starts_afresh_for_it(tmp_path):
+    """A worker killed between phases (while the run reads, say) breaks the pool before anything is given to
+    it: the phase's first submits fail as its tasks would, and the pool starts afresh."""
+    marker = tmp_path / "died"
+    marker.touch()  # dies_the_first_time then just doubles
+    with ThreadPoolExecutor(1) as threads, PickingElsewhere(threads, 1, picking=dies_the_first_time) as executor:
+        assert isinstance(executor.processes.submit(os._exit, 9).exception(), BrokenProcessPool)
+        results = map_tasks(executor, dies_the_first_time, [1, 2], str(marker), desc="simplify", progress=Progress("off"))
+    assert results == [2, 4]

@@ -11,6 +11,7 @@ from plyfile import PlyData, PlyElement
 from scipy.spatial import cKDTree
 
 import pipeline
+from pipeline.engine.threads import available_cores
 
 
 def write_dense_patch(path: Path, n: int = 120_000, seed: int = 0) -> None:
@@ -155,6 +156,7 @@ def test_one_and_two_workers_and_this_process_give_identical_bytes(tmp_path, den
     assert outputs[0] == outputs[1] == outputs[2]
 
 
+@pytest.mark.skipif(available_cores() < 2, reason="one core: a run has one task thread and picks on it")
 def test_fps_picking_in_worker_processes_gives_the_threads_bytes(tmp_path, dense_patch, monkeypatch):
     """From PROCESS_PICKING_POINTS (here 0) an in-process fps run picks in forkserver processes: the same file."""
     import pipeline.engine.processes as processes
@@ -162,9 +164,17 @@ def test_fps_picking_in_worker_processes_gives_the_threads_bytes(tmp_path, dense
     threads = tmp_path / "threads.laz"
     pipeline.run(dense_patch, threads, ratio=0.1, method="fps", tile_size=4.0, seed=7, workers=2)
     monkeypatch.setattr(processes, "PROCESS_PICKING_POINTS", 0)
-    assert processes.picks_in_processes(120_000, 2, True)
+    picked_elsewhere = []
+    submit = processes.PickingElsewhere.submit
+
+    def counted(self, fn, *args, **kwargs):
+        picked_elsewhere.append(fn is self.picking)
+        return submit(self, fn, *args, **kwargs)
+
+    monkeypatch.setattr(processes.PickingElsewhere, "submit", counted)
     elsewhere = tmp_path / "processes.laz"
     pipeline.run(dense_patch, elsewhere, ratio=0.1, method="fps", tile_size=4.0, seed=7, workers=2)
+    assert any(picked_elsewhere) and not all(picked_elsewhere)  # tiles picked in processes, the rest on threads
     assert elsewhere.read_bytes() == threads.read_bytes()
 
 

@@ -15,8 +15,11 @@ import dask
 from dask.distributed import Client, LocalCluster, WorkerPlugin
 
 from pipeline.engine.allocator import map_large_arrays
-from pipeline.engine.threads import ONE_THREAD, WORKER_PRELOAD, local_workers
+from pipeline.engine.threads import ONE_THREAD, local_workers
 from pipeline.errors import PipelineError
+
+# imported as each worker starts: the tasks, and signals left to the run
+WORKER_PRELOAD = "pipeline.engine.worker_setup"
 
 
 @contextmanager

@@ -124,7 +124,7 @@ def _map_here(pool: Executor, function: Callable, items: Sequence[Any], shared: 
         try:
             while futures:
                 done, _ = wait(futures, return_when=FIRST_COMPLETED)
-                if any(isinstance(future.exception(), BrokenProcessPool) for future in done):
+                if any(not future.cancelled() and isinstance(future.exception(), BrokenProcessPool) for future in done):
                     done, _ = wait(futures)  # the broken pool fails all it held at once: take them together
                 lost = []
                 for future in done:
@@ -144,7 +144,9 @@ def _map_here(pool: Executor, function: Callable, items: Sequence[Any], shared: 
                     if not hasattr(pool, "restart"):
                         raise PipelineError(f"{desc}: a worker process died (killed, or out of memory?)")
                     if losses > PROCESS_LOSSES:
-                        raise PipelineError(f"{desc}: worker processes died {losses} times (killed, or out of memory?)")
+                        raise PipelineError(f"{desc}: worker processes died {losses} times (killed, out of memory, or "
+                                            "started by a script that calls pipeline.run outside "
+                                            "`if __name__ == \"__main__\":`?)")
                     pool.restart()
                     again = set(lost)
                     futures.update({pool.submit(function, items[position], *shared): position

@@ -18,9 +18,9 @@ from pipeline.engine.execute import cluster, map_tasks
 from pipeline.engine.phases import (RESERVE_SHARE, bucket_scan, core_points, crowded_cells_note, make_jobs,
                                     scan_budgets, stitch_outputs)
 from pipeline.engine.preflight import check_room, check_run
+from pipeline.engine.processes import importing_parents_script, picks_in_processes
 from pipeline.engine.stop_guard import StopGuard
 from pipeline.engine.tasks import simplify_tile
-from pipeline.engine.processes import picks_in_processes
 from pipeline.engine.threads import local_workers, runs_in_process
 from pipeline.engine.workdir import WorkDir, output_settings
 from pipeline.errors import Interrupted, PipelineError, signal_exit_code
@@ -92,6 +92,9 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     `stop_grace_s` (the CLI's), an interrupted run whose cluster has not closed within that many seconds
     ends the process (pipeline.engine.stop_guard).
     """
+    if importing_parents_script():
+        raise PipelineError("pipeline.run was called while a worker process imported the script that started it: "
+                            "call it under `if __name__ == \"__main__\":`")
     clock = PhaseClock()
     config = config.validated()
     scan = Scan(inputs)

@@ -11,7 +11,6 @@ from typing import Iterator
 from threadpoolctl import threadpool_limits
 
 ONE_THREAD = {name: "1" for name in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS")}
-WORKER_PRELOAD = "pipeline.engine.worker_setup"  # what a worker process imports first: the tasks, signals left to the run
 
 
 def available_cores() -> int:

@@ -1,0 +1,17 @@
+"""Imported by the forkserver that picking processes are forked from (pipeline.engine.processes), before it
+serves: the tasks' code, once for every worker, then Python's own Ctrl-C handler.
+
+The server shares the run's process group, so a Ctrl-C pressed while it imports (about 0.4 s, during the
+run's reading) reached it too and printed its KeyboardInterrupt traceback under the run's one line. The run
+therefore starts it with Ctrl-C ignored (an ignored signal stays ignored across exec). Once it serves, the
+server ignores Ctrl-C itself; the handler is Python's own again before that, so whatever else it forks
+later in the same process (Python 3.14 forks every new process from a forkserver by default) takes Ctrl-C
+as usual, and a worker of ours ignores it in its own setup.
+"""
+from __future__ import annotations
+
+import signal
+
+import pipeline.engine.tasks  # noqa: F401  (imported once here: each worker is forked with it)
+
+signal.signal(signal.SIGINT, signal.default_int_handler)
