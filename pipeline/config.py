@@ -166,6 +166,10 @@ def load_settings(config: str | None) -> tuple[dict[str, Any], dict[str, dict[st
         document = tomllib.loads(path.read_text())
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise PipelineError(f"{path}: not a valid TOML config ({exc})") from None
+    stray = sorted(set(document) - {"run", "method"})
+    if stray:  # read as nothing, a setting above [run] would leave the run on its default without a word
+        raise PipelineError(f"{path}: {stray[0]!r} is outside [run]: settings go under [run], a method's parameters "
+                            "under [method.<name>]")
     table, methods = document.get("run", {}), document.get("method", {})
     if not isinstance(table, dict):
         raise PipelineError(f"{path}: [run] must be a table of settings, got {type(table).__name__} {table!r}")

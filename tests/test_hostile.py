@@ -190,6 +190,7 @@ def test_billions_of_evlrs_are_refused_at_once(tmp_path, command):
     ("[run]\nworkers = 1.5\n", "[run]: workers must be a whole number"),
     ("[run]\nmethod = 4\n", "[run]: method must be a string"),
     ("[run]\ntiles = 4\n", "unknown setting(s) tiles"),
+    ("in_process_points = 0\n[run]\nworkers = 2\n", "'in_process_points' is outside [run]"),
 ])
 def test_config_file_errors_name_the_file_and_key(tmp_path, scan, config, words):
     settings = tmp_path / "settings.toml"
