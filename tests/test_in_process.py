@@ -40,11 +40,11 @@ def test_results_come_back_in_item_order_with_the_costly_items_run_first():
         ran.append(item)
         return item + offset
 
-    costs = [1, 9, 2, 8, 1, 1]
+    costs = [1, 8, 2, 9, 1, 1]
     with in_process(1) as pool:
         results = map_tasks(pool, record, list(range(6)), 100, desc="test", progress=OFF, cost=lambda item: costs[item])
     assert results == [100, 101, 102, 103, 104, 105]
-    assert ran == [1, 3, 0, 2, 4, 5]  # above the mean cost first, then the rest, each in item order
+    assert ran == [3, 1, 0, 2, 4, 5]  # above the mean cost first, costliest first, then the rest in item order
 
 
 def test_a_failing_task_is_one_line_and_the_tasks_not_started_are_cancelled():

@@ -99,12 +99,15 @@ def map_tasks(client: Client | Executor, function: Callable, items: Sequence[Any
 
 
 def submission_order(items: Sequence[Any], cost: Callable[[Any], int] | None) -> np.ndarray:
-    """(items,) positions in the order to submit them: the items costlier than the mean first, then the
-    rest, each group in item order (so neighbouring tiles, which share stored chunks, stay together)."""
+    """(items,) positions in the order to submit them: the items costlier than the mean first, costliest
+    first (the longest-first rule: the last to finish is then a short one), then the rest in item order
+    (so neighbouring tiles, which share stored chunks, stay together). On lone-star's 9 tiles, the survey's
+    2-thread makespan from measured tile times: 0.91 s with the costly ones in item order, 0.83 longest first."""
     if cost is None or not len(items):  # none left (a resumed run's finished phase): no mean to take
         return np.arange(len(items))
     costs = np.array([cost(item) for item in items], dtype=float)
-    return np.argsort(costs <= costs.mean(), kind="stable")
+    costly = costs > costs.mean()
+    return np.lexsort((np.where(costly, -costs, 0.0), ~costly))
 
 
 PROCESS_LOSSES = 3  # times a pool of picking processes may lose a worker in one phase (Dask allows a task 3 too)
