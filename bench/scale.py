@@ -6,7 +6,9 @@
 
 Makes synthetic street scans with the project's simulator (streamed to LAZ in 500k-point chunks,
 never whole in memory; kept in --data between runs), runs each method on each, then the one-worker
-run at --one-worker-size for the speed-up. Prints a Markdown table, each run's phases (`-v`), the
+run at --one-worker-size for the speed-up. Every size runs on a local Dask cluster (`in_process_points = 0`),
+so the memory check compares like with like: by default a scan up to 3M points runs on threads of one
+process, whose tree is smaller than a cluster's (`--in-process` keeps that default). Prints a Markdown table, each run's phases (`-v`), the
 disk it used (input, work folder at its largest, output) and the three checks: peak RSS flat (largest
 scan within 1.2x of the smallest), per-point cost within 1.2x from the smallest scan to the largest,
 and 2 workers >= 1.7x one worker.
@@ -48,11 +50,16 @@ def scan_of(size: int, data: Path) -> Path:
     return path
 
 
-def run(scan: Path, method: str, workers: int, ratio: float, out_dir: Path) -> Measured:
-    """One `pipeline run` of the scan, measured over its process tree."""
+def run(scan: Path, method: str, workers: int, ratio: float, out_dir: Path, in_process: bool) -> Measured:
+    """One `pipeline run` of the scan, measured over its process tree: on a local cluster whatever its size,
+    unless `in_process` (then small scans run on threads, as by default)."""
     command = [sys.executable, "-m", "pipeline.apps.cli", "run", str(scan), "--ratio", str(ratio), "-o",
                str(out_dir / f"{scan.stem}-{method}-{workers}.laz"), "--method", method, "--workers", str(workers),
                "--overwrite", "-v", "--scratch", str(out_dir / "scratch")]
+    if not in_process:
+        config = out_dir / "cluster.toml"
+        config.write_text("[run]\nin_process_points = 0\n")
+        command += ["--config", str(config)]
     (out_dir / "scratch").mkdir(exist_ok=True)
     result = measure(command, watch_folder=out_dir / "scratch")
     if result.returncode != 0:
@@ -83,6 +90,8 @@ def main() -> None:
     parser.add_argument("--ratio", type=float, default=0.1)
     parser.add_argument("--one-worker-size", default="16M", help="size of the one-worker run for the speed-up")
     parser.add_argument("--data", type=Path, default=Path(tempfile.gettempdir()) / "lidar-simplify-scale")
+    parser.add_argument("--in-process", action="store_true",
+                        help="let scans under the in-process limit run on threads (default: every size on a cluster)")
     args = parser.parse_args()
     sizes = [parse_count(s) for s in args.sizes.split(",")]
     args.data.mkdir(parents=True, exist_ok=True)
@@ -93,7 +102,7 @@ def main() -> None:
         runs += [(parse_count(args.one_worker_size), method, 1) for method in args.methods.split(",")]
         for size, method, workers in runs:
             scan = scan_of(size, args.data)
-            results[method, workers, size] = run(scan, method, workers, args.ratio, Path(out_dir))
+            results[method, workers, size] = run(scan, method, workers, args.ratio, Path(out_dir), args.in_process)
             lines.append(row(size, method, workers, results[method, workers, size], scan, Path(out_dir)))
             phase_lines.append(phases(size, method, workers, results[method, workers, size]))
             print(lines[-1], "\n" + phase_lines[-1], flush=True)
