@@ -50,6 +50,9 @@ def scan_of(size: int, data: Path) -> Path:
     return path
 
 
+CLUSTER_CONFIG = "cluster.toml"  # written once into the output folder: every size on a local cluster
+
+
 def run(scan: Path, method: str, workers: int, ratio: float, out_dir: Path, in_process: bool) -> Measured:
     """One `pipeline run` of the scan, measured over its process tree: on a local cluster whatever its size,
     unless `in_process` (then small scans run on threads, as by default)."""
@@ -57,9 +60,7 @@ def run(scan: Path, method: str, workers: int, ratio: float, out_dir: Path, in_p
                str(out_dir / f"{scan.stem}-{method}-{workers}.laz"), "--method", method, "--workers", str(workers),
                "--overwrite", "-v", "--scratch", str(out_dir / "scratch")]
     if not in_process:
-        config = out_dir / "cluster.toml"
-        config.write_text("[run]\nin_process_points = 0\n")
-        command += ["--config", str(config)]
+        command += ["--config", str(out_dir / CLUSTER_CONFIG)]
     (out_dir / "scratch").mkdir(exist_ok=True)
     result = measure(command, watch_folder=out_dir / "scratch")
     if result.returncode != 0:
@@ -98,6 +99,7 @@ def main() -> None:
     results: dict[tuple[str, int, int], Measured] = {}
     lines, phase_lines = [], []
     with tempfile.TemporaryDirectory(dir=args.data) as out_dir:
+        (Path(out_dir) / CLUSTER_CONFIG).write_text("[run]\nin_process_points = 0\n")
         runs = [(size, method, args.workers) for size in sizes for method in args.methods.split(",")]
         runs += [(parse_count(args.one_worker_size), method, 1) for method in args.methods.split(",")]
         for size, method, workers in runs:
