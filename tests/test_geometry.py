@@ -5,7 +5,7 @@ import pytest
 from model import geometry
 from model.geometry import (bandwidth, curvature, knn, local_eigenvalues, local_features, local_frames, mean_curvature,
                             point_features, roughness)
-from model.rules import column_max, column_min, grid_xyz, morton_order, stable_argsort
+from model.rules import column_max, column_mean, column_min, grid_xyz, morton_order, stable_argsort
 from tiling.plan import DensityGrid
 
 
@@ -256,6 +256,17 @@ def test_column_bounds_are_numpys_axis_reductions(dtype):
         assert np.isnan(column_min(values)[1]) and not np.isnan(column_min(values)[[0, 2]]).any()
     with pytest.raises(ValueError):
         column_min(values[:0])
+
+
+def test_column_mean_is_numpys_axis_mean_bit_for_bit():
+    """A tile's centre (pipeline.engine.tasks.load_tile) comes from column_mean: it must equal mean(axis=0)
+    exactly, or every centred coordinate, and so the picks, would move by round-off."""
+    rng = np.random.default_rng(2)
+    for count in (1, 7, 1_000, 31_000, 200_001):
+        values = rng.normal(0, 1, (count, 3)) * rng.uniform(0.01, 1e5) + rng.uniform(-1e6, 1e6, 3)
+        for narrow in (values, values[::3], values[rng.random(count) < 0.6]):
+            if len(narrow):
+                assert np.array_equal(column_mean(narrow), narrow.mean(axis=0))
 
 
 def test_coordinates_of_records_and_their_grid_cells_are_the_broadcast_formulas():

@@ -85,6 +85,28 @@ def test_voxel_representative_is_the_nearest_and_of_equally_near_ones_the_first(
     assert _voxel_representatives(axis_columns(points[:0]), bounds, 1.0).tolist() == []
 
 
+def test_voxel_representatives_of_many_tied_points_are_the_lowest_index_nearest_ones():
+    """The key sort is numpy's unstable one: over thousands of points, most of them exact duplicates scattered
+    through the array (so the sort reorders ties), each voxel still gives the lowest index among its points
+    nearest the centre, as a brute-force pass over the voxels finds."""
+    from model.baselines import _voxel_representatives, axis_columns
+
+    rng = np.random.default_rng(3)
+    distinct = rng.uniform(0, 6, size=(300, 3))
+    points = distinct[rng.integers(0, len(distinct), 20_000)]
+    bounds = (points.min(axis=0), points.max(axis=0))
+    cell = 1.0
+    voxels = np.floor(points / cell)
+    near = ((points - (voxels + 0.5) * cell) ** 2).sum(axis=1)
+    expected = {}
+    for index, voxel in enumerate(map(tuple, voxels)):
+        best = expected.get(voxel)
+        if best is None or near[index] < near[best]:
+            expected[voxel] = index
+    got = _voxel_representatives(axis_columns(points), bounds, cell)
+    assert sorted(got.tolist()) == sorted(expected.values())
+
+
 def test_voxel_tops_up_when_points_are_duplicates():
     xyz = np.repeat(np.random.default_rng(0).uniform(0, 1, size=(50, 3)), 4, axis=0)
     tile = Tile(xyz, np.ones(len(xyz), bool), np.zeros(3), seed=1)
@@ -124,7 +146,7 @@ def test_voxel_cell_search_near_every_point_takes_few_counts(share, monkeypatch)
     budget = round(share * len(points))
     sizes = np.sqrt(40 * 40 / budget) * 2.0 ** np.arange(-4, 5)
     counted = []
-    monkeypatch.setattr(baselines, "sorted_distinct", lambda keys: counted.append(1) or np.unique(keys))
+    monkeypatch.setattr(baselines, "distinct_count", lambda keys: counted.append(1) or len(np.unique(keys)))
     cell = baselines._cell_for_budget(baselines.axis_columns(points), (points.min(axis=0), points.max(axis=0)), budget,
                                       baselines.VOXEL_COUNT_SLACK,
                                       VoxelCounts(sizes, occupied_voxels(points, sizes)).edge_for(budget))
