@@ -29,9 +29,10 @@ class Method:
     light_on_gil: ClassVar[bool] = False     # True: its work runs in compiled code (numpy, fpsample), so threads of
                                              # one process beat a cluster's start on bigger scans (measured; fpsample
                                              # itself keeps the GIL: its picks go one thread at a time)
-    picks_hold_gil: ClassVar[bool] = False   # True: its picking holds the GIL throughout (fpsample), so a run on
-                                             # threads of one process picks in worker processes instead (from 2M
-                                             # points: pipeline.engine.processes)
+    tiles_in_processes: ClassVar[bool] = False  # True: its tile work (survey and picks) is heavy and holds the GIL a
+                                                # fair share (fpsample throughout, the hole cover's loop, numpy on
+                                                # small tiles), so a run on threads of one process gives it to worker
+                                                # processes (from 2M points: pipeline.engine.processes)
     sees_tile_extent: ClassVar[bool] = False  # True: its picks depend on how far a tile reaches, so the run does not
                                               # merge sparse tiles for it (pipeline.config.RunConfig.merge_limit)
 
@@ -70,7 +71,7 @@ class Fps(Method):
     reads_halo: ClassVar[bool] = False
     spaces_evenly: ClassVar[bool] = True
     light_on_gil: ClassVar[bool] = True
-    picks_hold_gil: ClassVar[bool] = True
+    tiles_in_processes: ClassVar[bool] = True
 
     def __call__(self, tile: Tile, budget: int) -> Selection:
         return fps_simplify(tile, budget)
@@ -121,6 +122,7 @@ class Fill(Method):
     is a point farther than `cover_spacings` typical output spacings from every pick."""
 
     cover_spacings: float = COVER_SPACINGS
+    tiles_in_processes: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -157,24 +157,28 @@ def test_one_and_two_workers_and_this_process_give_identical_bytes(tmp_path, den
 
 
 @pytest.mark.skipif(available_cores() < 2, reason="one core: a run has one task thread and picks on it")
-def test_fps_picking_in_worker_processes_gives_the_threads_bytes(tmp_path, dense_patch, monkeypatch):
-    """From PROCESS_PICKING_POINTS (here 0) an in-process fps run picks in forkserver processes: the same file."""
+@pytest.mark.parametrize("method", ["fps", "learned"])
+def test_tiles_surveyed_and_picked_in_worker_processes_give_the_threads_bytes(tmp_path, dense_patch, monkeypatch,
+                                                                               method):
+    """From PROCESS_TILE_POINTS (here 0) an in-process run surveys and picks its tiles in forkserver processes
+    (for fps the survey counts voxels, for learned it also predicts the fill loss): the same file."""
     import pipeline.engine.processes as processes
 
     threads = tmp_path / "threads.laz"
-    pipeline.run(dense_patch, threads, ratio=0.1, method="fps", tile_size=4.0, seed=7, workers=2)
-    monkeypatch.setattr(processes, "PROCESS_PICKING_POINTS", 0)
-    picked_elsewhere = []
-    submit = processes.PickingElsewhere.submit
+    pipeline.run(dense_patch, threads, ratio=0.1, method=method, tile_size=4.0, seed=7, workers=2)
+    monkeypatch.setattr(processes, "PROCESS_TILE_POINTS", 0)
+    sent = []
+    submit = processes.TilesElsewhere.submit
 
     def counted(self, fn, *args, **kwargs):
-        picked_elsewhere.append(fn is self.picking)
+        sent.append((fn.__name__, fn in self.tile_work))
         return submit(self, fn, *args, **kwargs)
 
-    monkeypatch.setattr(processes.PickingElsewhere, "submit", counted)
+    monkeypatch.setattr(processes.TilesElsewhere, "submit", counted)
     elsewhere = tmp_path / "processes.laz"
-    pipeline.run(dense_patch, elsewhere, ratio=0.1, method="fps", tile_size=4.0, seed=7, workers=2)
-    assert any(picked_elsewhere) and not all(picked_elsewhere)  # tiles picked in processes, the rest on threads
+    pipeline.run(dense_patch, elsewhere, ratio=0.1, method=method, tile_size=4.0, seed=7, workers=2)
+    assert {name for name, away in sent if away} == {"survey_tile", "simplify_tile"}
+    assert {name for name, away in sent if not away} == {"bucket_piece"}  # reading stays on the threads
     assert elsewhere.read_bytes() == threads.read_bytes()
 
 

@@ -18,12 +18,12 @@ if TYPE_CHECKING:
 
 
 def cluster(workers: int, memory_limit: str, scheduler: str | None, here: bool = False,
-            picking_processes: bool = False) -> ContextManager[Client | Executor]:
+            tile_processes: bool = False) -> ContextManager[Client | Executor]:
     """The scheduler's cluster when one is named, else `workers` threads of this process when `here`
-    (capped at the cores, as local workers are; with `picking_processes`, the tiles' picking in as many
+    (capped at the cores, as local workers are; with `tile_processes`, the tiles' surveys and picks in as many
     worker processes), else a fresh local cluster."""
     if here and not scheduler:
-        return in_process(local_workers(workers), picking_processes)
+        return in_process(local_workers(workers), tile_processes)
     from pipeline.engine.dask_cluster import connect, local_cluster
 
     return connect(scheduler) if scheduler else local_cluster(workers, memory_limit)
@@ -110,14 +110,14 @@ def submission_order(items: Sequence[Any], cost: Callable[[Any], int] | None) ->
     return np.lexsort((np.where(costly, -costs, 0.0), ~costly))
 
 
-PROCESS_LOSSES = 3  # times a pool of picking processes may lose a worker in one phase (Dask allows a task 3 too)
+PROCESS_LOSSES = 3  # times a pool of tile processes may lose a worker in one phase (Dask allows a task 3 too)
 
 
 def _map_here(pool: Executor, function: Callable, items: Sequence[Any], shared: tuple, desc: str,
               progress: Progress, weight: Callable[[Any], int], cost: Callable[[Any], int] | None) -> list[Any]:
-    """map_tasks on this process's task threads (and picking processes: pipeline.engine.processes): the same
+    """map_tasks on this process's task threads (and tile processes: pipeline.engine.processes): the same
     calls, in the same submission order, failures reported as a worker's are; the first failure cancels the
-    tasks not started. A pool of picking processes that loses one (killed: out of memory?) fails every task
+    tasks not started. A pool of tile processes that loses one (killed: out of memory?) fails every task
     it held: it is started afresh and those tasks given to it again, up to PROCESS_LOSSES times."""
     order = [int(position) for position in submission_order(items, cost)]
     futures = {pool.submit(function, items[position], *shared): position for position in order}

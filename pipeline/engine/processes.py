@@ -1,12 +1,21 @@
-"""Worker processes without Dask for an in-process run whose method picks while holding Python's GIL.
+"""Worker processes without Dask for an in-process run whose tile work holds Python's GIL a fair share.
 
 Why: fpsample's FPS holds the GIL for the whole of a call (a Python thread beside it got 1 % of its time),
 so `fps` tiles on two task threads ran one at a time. Given to worker processes forked from a forkserver
 (the tasks' modules imported once in the server), the pick step ran 1.75x faster on 2 cores: `fps` on a
-6M-point street 10.7-12.3 -> 9.0-9.1 s, on bcts_1..4 (2.83M) 5.3-5.6 -> 4.3-4.8 s, the same bytes. Reading
-and surveying stay on the run's threads (numpy lets go of the GIL there). Below PROCESS_PICKING_POINTS the
-processes cost what they save (a 1M street: no gain); `learned` gained nothing either (its survey already
-runs 1.5x on two threads).
+6M-point street 10.7-12.3 -> 9.0-9.1 s, on bcts_1..4 (2.83M) 5.3-5.6 -> 4.3-4.8 s, the same bytes.
+
+The survey goes there too, and so do the fill's (`learned`'s) tiles: on two threads its surveys and picks
+ran 1.76x and 1.42x one thread's speed, their CPU time inflated by 5 and 14 % and 0.5-0.6 s spent waiting
+for the GIL (the hole cover's Python loop, numpy's many calls on 31k-point bcts tiles). In processes, on
+bcts_1..4 the simplify phase ran `learned` 5.75-5.82 -> 5.01-5.10 s (wall 7.2-7.5 -> 6.5-6.8 s under a
+memory probe) and `fps` 1.48-1.57 -> 1.40-1.46 s; `learned` on a 2.8M street 5.97-6.27 -> 5.08-5.15 s, on
+a 1.5M one 3.3 -> 2.8-2.9 s. The run's tree then peaks about twice as high (bcts `learned` 176-208 -> 395
+MiB, about a local cluster's), with the same bytes. `voxel` gained 3 % (its simplify phase 1.23 -> 0.98 s,
+its reading 0.2 s slower) for twice the memory, and `random` lost (1.38-1.40 -> 1.48-1.60 s): theirs stay
+on threads. Reading stays on the run's threads (lazrs decodes on every core). Below PROCESS_TILE_POINTS the
+forkserver's start, which competes with the reading, costs what the processes save (a 1M street and
+lone-star's 519k: no gain).
 """
 from __future__ import annotations
 
@@ -25,30 +34,31 @@ from typing import Any, Callable
 from threadpoolctl import threadpool_limits
 
 from pipeline.engine.allocator import map_large_arrays
-from pipeline.engine.tasks import simplify_tile
+from pipeline.engine.tasks import simplify_tile, survey_tile
 
-PROCESS_PICKING_POINTS = 2_000_000  # scans from this size give their picking to worker processes
-SERVER_PRELOAD = "pipeline.engine.picking_server"  # the forkserver imports the tasks once
+PROCESS_TILE_POINTS = 2_000_000  # scans from this size give their tile work to worker processes
+SERVER_PRELOAD = "pipeline.engine.tile_server"  # the forkserver imports the tasks once
 PR_SET_PDEATHSIG = 1  # Linux's prctl option: a signal this process gets when its parent ends
 
 
-def picks_in_processes(points: int, threads: int, picks_hold_gil: bool) -> bool:
-    """Whether an in-process run of `points` on `threads` task threads sends its tiles' picking to worker
-    processes: for a method whose picking holds the GIL, on 2 or more threads, where a forkserver exists."""
-    return (picks_hold_gil and threads >= 2 and points >= PROCESS_PICKING_POINTS
+def use_tile_processes(points: int, threads: int, tiles_in_processes: bool) -> bool:
+    """Whether an in-process run of `points` on `threads` task threads sends its tiles' surveys and picks to
+    worker processes: for a method whose tile work holds the GIL a fair share (Method.tiles_in_processes), on
+    2 or more threads, where a forkserver exists."""
+    return (tiles_in_processes and threads >= 2 and points >= PROCESS_TILE_POINTS
             and "forkserver" in multiprocessing.get_all_start_methods())
 
 
 def importing_parents_script() -> bool:
-    """Whether this process is a worker (a picking process, a local Dask worker) still importing the script
+    """Whether this process is a worker (a tile process, a local Dask worker) still importing the script
     that started it (multiprocessing's own flag, which its checks read): a run started there would be a
     second run of the same files, into the same work folder."""
     return bool(getattr(multiprocessing.current_process(), "_inheriting", False))
 
 
-def picking_processes(workers: int) -> ProcessPoolExecutor:
+def tile_processes(workers: int) -> ProcessPoolExecutor:
     """`workers` worker processes forked from the forkserver, started now (a fork and exec: its imports, in
-    pipeline.engine.picking_server, run in it while the run reads, Ctrl-C ignored). Each worker sets itself
+    pipeline.engine.tile_server, run in it while the run reads, Ctrl-C ignored). Each worker sets itself
     up as a Dask worker is (setup_worker): Ctrl-C and SIGTERM are the run's own process's, which stops the
     pool."""
     context = multiprocessing.get_context("forkserver")
@@ -61,7 +71,7 @@ def picking_processes(workers: int) -> ProcessPoolExecutor:
 @contextmanager
 def ctrl_c_ignored() -> Iterator[None]:
     """SIGINT ignored for a moment (from the main thread only, which alone may set handlers): a process
-    started meanwhile keeps it ignored through exec, until pipeline.engine.picking_server hands it back."""
+    started meanwhile keeps it ignored through exec, until pipeline.engine.tile_server hands it back."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -73,7 +83,7 @@ def ctrl_c_ignored() -> Iterator[None]:
 
 
 def setup_worker() -> None:
-    """A picking process as it starts, whoever started the forkserver: Ctrl-C and SIGTERM ignored, ended with
+    """A tile process as it starts, whoever started the forkserver: Ctrl-C and SIGTERM ignored, ended with
     the run's process (through the server), BLAS and OpenMP on one thread, large arrays mapped whole."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -107,21 +117,22 @@ def die_with_parent() -> None:
         os._exit(1)
 
 
-class PickingElsewhere(Executor):
-    """An in-process run's executor: its task threads, but each tile's picking (`picking`, simplify_tile) in
-    `workers` worker processes, which `restart` replaces when one has died. Shutting it down waits for both,
-    cancelling what has not started."""
+class TilesElsewhere(Executor):
+    """An in-process run's executor: its task threads, but each tile's survey and picks (`tile_work`:
+    survey_tile, simplify_tile) in `workers` worker processes, which `restart` replaces when one has died.
+    Shutting it down waits for both, cancelling what has not started."""
 
-    def __init__(self, threads: Executor, workers: int, picking: Callable[..., Any] = simplify_tile) -> None:
+    def __init__(self, threads: Executor, workers: int,
+                 tile_work: tuple[Callable[..., Any], ...] = (survey_tile, simplify_tile)) -> None:
         self.threads = threads
         self.workers = workers
-        self.picking = picking
-        self.processes = picking_processes(workers)
+        self.tile_work = tile_work
+        self.processes = tile_processes(workers)
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
         """The call's future; a pool already broken gives one failed with BrokenProcessPool, as its running
         tasks' are, so the caller restarts it in one place."""
-        if fn is not self.picking:
+        if fn not in self.tile_work:
             return self.threads.submit(fn, *args, **kwargs)
         try:
             return self.processes.submit(fn, *args, **kwargs)
@@ -133,7 +144,7 @@ class PickingElsewhere(Executor):
     def restart(self) -> None:
         """Fresh worker processes in place of a pool that lost one (its other tasks failed with it)."""
         self.processes.shutdown(wait=False, cancel_futures=True)
-        self.processes = picking_processes(self.workers)
+        self.processes = tile_processes(self.workers)
 
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         self.threads.shutdown(wait, cancel_futures=cancel_futures)

@@ -18,7 +18,7 @@ from pipeline.engine.execute import cluster, map_tasks
 from pipeline.engine.phases import (RESERVE_SHARE, bucket_scan, core_points, crowded_cells_note, make_jobs,
                                     scan_budgets, stitch_outputs)
 from pipeline.engine.preflight import check_room, check_run
-from pipeline.engine.processes import importing_parents_script, picks_in_processes
+from pipeline.engine.processes import importing_parents_script, use_tile_processes
 from pipeline.engine.stop_guard import StopGuard
 from pipeline.engine.tasks import simplify_tile
 from pipeline.engine.threads import local_workers, runs_in_process
@@ -128,7 +128,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     try:
         threads = local_workers(config.workers)
         here = runs_in_process(scan.point_count, config.in_process_points, threads, config.simplifier.light_on_gil)
-        elsewhere = picks_in_processes(scan.point_count, threads, config.simplifier.picks_hold_gil)
+        elsewhere = use_tile_processes(scan.point_count, threads, config.simplifier.tiles_in_processes)
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here,
                                                         elsewhere) as active:
             try:

@@ -49,11 +49,11 @@ def one_openmp_thread() -> None:
 
 
 @contextmanager
-def in_process(threads: int = 1, picking_processes: bool = False) -> Iterator[Executor]:
+def in_process(threads: int = 1, tile_processes: bool = False) -> Iterator[Executor]:
     """A pool of `threads` task threads in this process, BLAS, OpenMP and torch held to one thread each as
     in a worker, so the output equals a cluster run's byte for byte; they are given back afterwards. With
-    `picking_processes`, the tiles' picking goes to as many worker processes instead
-    (pipeline.engine.processes: for a method whose picking holds the GIL).
+    `tile_processes`, the tiles' surveys and picks go to as many worker processes instead
+    (pipeline.engine.processes: for a method whose tile work holds the GIL a fair share).
 
     Leaving it (also on an error or Ctrl-C) cancels the tasks not started and waits for the running ones:
     at most one tile each, and none writes after the run has said what it kept."""
@@ -67,10 +67,10 @@ def in_process(threads: int = 1, picking_processes: bool = False) -> Iterator[Ex
         with threadpool_limits(limits=1), ThreadPoolExecutor(threads, thread_name_prefix="pipeline-task",
                                                             initializer=one_openmp_thread) as pool:
             executor: Executor = pool
-            if picking_processes:
-                from pipeline.engine.processes import PickingElsewhere
+            if tile_processes:
+                from pipeline.engine.processes import TilesElsewhere
 
-                executor = PickingElsewhere(pool, threads)
+                executor = TilesElsewhere(pool, threads)
             try:
                 yield executor
             finally:

@@ -1,4 +1,4 @@
-"""Imported by the forkserver that picking processes are forked from (pipeline.engine.processes), before it
+"""Imported by the forkserver that tile processes are forked from (pipeline.engine.processes), before it
 serves: the tasks' code, once for every worker, then Python's own Ctrl-C handler.
 
 The server shares the run's process group, so a Ctrl-C pressed while it imports (about 0.4 s, during the
