@@ -10,6 +10,7 @@ import time
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -19,11 +20,13 @@ from model.selection import FillContext, FillLoss, Selection, Tile, VoxelCounts
 from model.stratified import pick_spacings, trial_fill
 from pipeline.engine.classes import ClassRule, class_histogram
 from pipeline.engine.workdir import BucketedPiece, WorkDir, save_npz, write_atomically
-from pipeline.io.scan import Piece, Scan
 from tiling.bucket import SubCellIndex, bucket_by_cell, bucket_by_sub_cell
 from tiling.budgets import occupied_voxels
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, StoredPoints, TileStore
+
+if TYPE_CHECKING:  # a tile process never reads the scan: laspy and pyproj (about 0.1 s) stay out of its server's import
+    from pipeline.io.scan import Piece, Scan
 
 
 @dataclass(frozen=True)
