@@ -232,3 +232,15 @@ def test_a_halo_that_misses_a_pieces_box_has_no_rows_in_it():
             assert meets or not has_rows
             asked, found = asked + meets, found + has_rows
     assert found <= asked < len(plan.tiles) * len(pieces) / 2  # most pairs are skipped
+
+
+def test_stable_order_is_numpys_stable_argsort_for_narrow_and_wide_keys():
+    """The piece sort takes 16-bit offsets where the keys span fewer than 2**16 values: the same order as a
+    stable argsort of the keys themselves, ties in index order, on either side of that span and when empty."""
+    from tiling.bucket import stable_order
+
+    rng = np.random.default_rng(4)
+    for span in (1, 300, 2**16 - 1, 2**16, 2**40):
+        keys = rng.integers(5_000, 5_000 + span, 20_000).astype(np.int64)
+        np.testing.assert_array_equal(stable_order(keys), np.argsort(keys, kind="stable"))
+    assert len(stable_order(np.empty(0, dtype=np.int64))) == 0

@@ -29,7 +29,7 @@ class CellBuckets:
 def bucket_by_cell(records: np.ndarray, xyz: np.ndarray, first: int, grid: DensityGrid) -> CellBuckets:
     """Sort a piece (global indices first, first+1, ...) by grid cell, file order kept within a cell."""
     cell = grid.cell_of(xyz)
-    order = np.argsort(cell, kind="stable")
+    order = stable_order(cell)
     sorted_cells = cell[order]
     starts = np.flatnonzero(np.diff(sorted_cells, prepend=-1))
     return CellBuckets(encode_rows(records, first + np.arange(len(records)), order), sorted_cells[starts],
@@ -63,12 +63,21 @@ def bucket_by_sub_cell(records: np.ndarray, index: np.ndarray, xyz: np.ndarray, 
     si, sj = grid.sub_cell_of(xyz)
     cell = np.searchsorted(crowded, grid.cell_of(xyz))
     bucket = cell * SUB_CELLS**2 + z_order(si, sj)
-    order = np.argsort(bucket, kind="stable")
+    order = stable_order(bucket)
     slots = len(crowded) * SUB_CELLS**2
     starts = np.searchsorted(bucket[order], np.arange(slots + 1))
     flat = (cell * SUB_CELLS + si) * SUB_CELLS + sj
     kept_whole = np.bincount(flat[protected], minlength=slots).reshape(len(crowded), SUB_CELLS, SUB_CELLS)
     return encode_rows(records, index, order), SubCellIndex(starts, kept_whole)
+
+
+def stable_order(keys: np.ndarray) -> np.ndarray:
+    """np.argsort(keys, kind="stable") of (n,) integer keys, sorted as 16-bit offsets from their least where
+    they span fewer than 2**16 values (numpy radix-sorts those: a 500k-point bcts piece's cells in 3.5
+    against 10 ms), as they do within a piece of all but the widest scans."""
+    if len(keys) and int(keys.max()) - int(keys.min()) < 2**16:
+        keys = (keys - keys.min()).astype(np.uint16)
+    return np.argsort(keys, kind="stable")
 
 
 def z_order(si: np.ndarray, sj: np.ndarray) -> np.ndarray:
