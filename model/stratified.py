@@ -26,7 +26,7 @@ from pykdtree.kdtree import KDTree
 
 from model.geometry import FRAME_POINTS, local_features
 from model.metrics import nearest
-from model.rules import interleaved, radical_inverse_order
+from model.rules import distinct_of_sorted, interleaved, radical_inverse_order
 from model.selection import FillLoss, Selection, Tile, topped_up
 
 COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
@@ -145,7 +145,7 @@ def weighted_picks(curve: np.ndarray, weights: np.ndarray | None, count: int, ph
         return np.empty(0, dtype=np.int64)
     cumulative = np.cumsum(keep_probabilities(weights, count))
     positions = np.searchsorted(cumulative, phase + np.arange(count), side="right")
-    return curve[np.unique(np.minimum(positions, len(curve) - 1))]
+    return curve[distinct_of_sorted(np.minimum(positions, len(curve) - 1))]  # positions ascend: no sort needed
 
 
 def keep_probabilities(weights: np.ndarray, count: int) -> np.ndarray:

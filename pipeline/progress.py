@@ -13,9 +13,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
-from typing import Callable, Iterable, Iterator, TextIO, TypeVar
+from typing import Any, Callable, Iterable, Iterator, TextIO, TypeVar
 
-from tqdm import tqdm
 
 INTERVAL_ENV = "PIPELINE_PROGRESS_SECONDS"  # seconds between progress lines off a terminal
 DEFAULT_INTERVAL = 10.0
@@ -73,7 +72,7 @@ class Phase:
         self.progress, self.desc, self.total, self.unit = progress, desc, total, unit
         self.done = self.points = 0
         self.started = self.last = time.perf_counter()
-        self.bar = tqdm(total=total, desc=desc, unit=unit, leave=False, disable=progress.mode != "bar")
+        self.bar = progress_bar(total, desc, unit) if progress.mode == "bar" else None
         self._lock, self._stopped = threading.Lock(), threading.Event()
         if progress.mode in ("lines", "json") and progress.interval >= HEARTBEAT_MIN:
             threading.Thread(target=self._beat, daemon=True).start()
@@ -103,7 +102,8 @@ class Phase:
 
     def close(self) -> None:
         """End the phase: a last line when it ran long enough to have shown progress."""
-        self.bar.close()
+        if self.bar is not None:
+            self.bar.close()
         with self._lock:
             self._stopped.set()
             if self.progress.mode in ("lines", "json") and self.last > self.started:
@@ -114,6 +114,13 @@ class Phase:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def progress_bar(total: int, desc: str, unit: str) -> Any:
+    """A terminal's progress bar for a phase (tqdm, imported here: a run off a terminal never loads it)."""
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc=desc, unit=unit, leave=False)
 
 
 def counted(items: Iterable[T], phase: Phase, points: Callable[[T], int] = lambda item: 0) -> Iterator[T]:

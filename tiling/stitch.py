@@ -12,6 +12,8 @@ from typing import Sequence
 import numpy as np
 from pykdtree.kdtree import KDTree
 
+from model.rules import sorted_distinct
+
 
 @dataclass(frozen=True)
 class SeamBand:
@@ -82,10 +84,10 @@ def resolve_seams(bands: Sequence[SeamBand], candidate_counts: np.ndarray, budge
     earlier = np.where(tile[pairs[:, 0]] > tile[pairs[:, 1]], pairs[:, 1], pairs[:, 0])
     accepted = np.zeros(len(xyz), dtype=bool)
     rejections: dict[int, np.ndarray] = {}
-    for tile_id in np.unique(tile):
+    for tile_id in sorted_distinct(tile):
         members = np.flatnonzero(tile == tile_id)
         clash = np.isin(later, members) & accepted[earlier]
-        rejected = np.unique(rank[later[clash]])
+        rejected = sorted_distinct(rank[later[clash]])
         chosen = first_accepted(int(candidate_counts[tile_id]), int(budgets[tile_id]), rejected)
         accepted[members] = np.isin(rank[members], chosen)
         if len(rejected):

@@ -18,7 +18,6 @@ import_laspy_without_http()  # before the imports below, which bring laspy in
 
 import configs  # noqa: E402
 from pipeline.apps.cli_extras import demo_command, train_command, train_detail_command  # noqa: E402
-from pipeline.apps.scan_summary import format_summary, summarize  # noqa: E402
 from pipeline.apps.scoring import DEFAULT_SAMPLE  # noqa: E402
 from pipeline.apps.visual.report_region import COLORS, parse_region  # noqa: E402
 from pipeline.config import METHODS, build_config, parse_list, parse_parameters  # noqa: E402
@@ -246,6 +245,8 @@ def log_human_line(event: dict) -> None:
 @click.option("--header-only", is_flag=True, help="Skip counting classes and returns (reads only the header).")
 def info_command(input_file: Path, as_json: bool, header_only: bool) -> None:
     """Summarise INPUT: points, format, bounds, CRS with EPSG and units, density, size, class and return counts."""
+    from pipeline.apps.scan_summary import format_summary, summarize
+
     summary = summarize(input_file, count_points=not header_only)
     click.echo(json.dumps(summary, indent=2) if as_json else format_summary(summary))
 
