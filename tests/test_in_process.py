@@ -99,7 +99,8 @@ def test_the_chunk_cache_shared_by_threads_keeps_its_budget_and_its_rows():
 def test_more_threads_take_fewer_points_in_process():
     """`in_process_points` holds at 2 threads; with more, threads lose more to processes (the GIL), so the
     cluster's start pays off sooner: 667k points at 4 threads, 571k at 8; 0 always starts a cluster. A
-    method light on the GIL runs three times as many points on threads."""
+    method light on the GIL runs three times as many points on threads, one whose tiles go to worker
+    processes seven times as many (whether or not it is light on the GIL)."""
     limit = 1_000_000
     assert runs_in_process(limit, limit, 1) and runs_in_process(limit, limit, 2)
     assert not runs_in_process(limit + 1, limit, 2)
@@ -108,6 +109,10 @@ def test_more_threads_take_fewer_points_in_process():
     assert not runs_in_process(1, 0, 2) and not runs_in_process(1, 0, 2, light_on_gil=True)
     assert runs_in_process(3 * limit, limit, 2, light_on_gil=True)
     assert not runs_in_process(3 * limit + 1, limit, 2, light_on_gil=True)
+    for light in (False, True):
+        assert runs_in_process(7 * limit, limit, 2, light, tile_processes=True)
+        assert not runs_in_process(7 * limit + 1, limit, 2, light, tile_processes=True)
+    assert not runs_in_process(1, 0, 2, tile_processes=True)
 
 
 def test_the_methods_light_on_the_gil_are_the_compiled_ones():

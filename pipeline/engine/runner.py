@@ -127,8 +127,9 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     guard = StopGuard(stop_grace_s)
     try:
         threads = local_workers(config.workers)
-        here = runs_in_process(scan.point_count, config.in_process_points, threads, config.simplifier.light_on_gil)
         elsewhere = use_tile_processes(scan.point_count, threads, config.simplifier.tiles_in_processes)
+        here = runs_in_process(scan.point_count, config.in_process_points, threads, config.simplifier.light_on_gil,
+                               elsewhere)
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here,
                                                         elsewhere) as active:
             try:

@@ -29,13 +29,22 @@ LIGHT_ON_GIL_SCALE = 3  # how many times more points a method light on the GIL r
 # (street, 39.3 and 37.7 s); `voxel` still won on threads at 10M (36.6 s against 43.4)
 
 
-def runs_in_process(points: int, limit: int, threads: int, light_on_gil: bool = False) -> bool:
+TILE_PROCESS_SCALE = 7  # how many times more points run in-process when the tiles' surveys and picks go to worker
+# processes (pipeline.engine.processes), where the GIL no longer holds them back: on a 2-core machine that beat a
+# local cluster on the street in time and memory at every size measured, up to 20M (`learned` at 6M 13.9-14.2 s and
+# 391-411 MiB against 16.3-17.0 s and 462-469 MiB, at 20M 48.1 s / 408 against 53.8 / 482; `fps` at 20M 19.9 s /
+# 347 against 25.5 / 443). Larger scans keep a local cluster, whose workers' memory limit then matters most.
+
+
+def runs_in_process(points: int, limit: int, threads: int, light_on_gil: bool = False,
+                    tile_processes: bool = False) -> bool:
     """Whether a scan of `points` runs on `threads` threads of this process rather than on a local cluster:
     up to `limit` points at 2 threads, where it was measured, fewer with more; LIGHT_ON_GIL_SCALE times more
-    for a method whose work lets go of Python's GIL. A task holds the GIL for a share of its time
-    (bench/gil_share.py), so threads lose to processes in proportion to 1 - 1/threads (Amdahl's law),
-    while the cluster's start and close stay the same."""
-    scale = LIGHT_ON_GIL_SCALE if light_on_gil else 1
+    for a method whose work lets go of Python's GIL, TILE_PROCESS_SCALE times more where its tiles go to
+    worker processes (`tile_processes`). A task holds the GIL for a share of its time (bench/gil_share.py),
+    so threads lose to processes in proportion to 1 - 1/threads (Amdahl's law), while the cluster's start
+    and close stay the same."""
+    scale = TILE_PROCESS_SCALE if tile_processes else LIGHT_ON_GIL_SCALE if light_on_gil else 1
     return points <= limit * scale * 0.5 / (1 - 1 / max(threads, 2))
 
 
