@@ -32,7 +32,7 @@ class Method:
     tiles_in_processes: ClassVar[bool] = False  # True: its tile work (survey and picks) is heavy and holds the GIL a
                                                 # fair share (fpsample throughout, the hole cover's loop, numpy on
                                                 # small tiles), so a run on threads of one process gives it to worker
-                                                # processes (from 2M points: pipeline.engine.processes)
+                                                # processes (from 1M points: pipeline.engine.processes)
     sees_tile_extent: ClassVar[bool] = False  # True: its picks depend on how far a tile reaches, so the run does not
                                               # merge sparse tiles for it (pipeline.config.RunConfig.merge_limit)
 

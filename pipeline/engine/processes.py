@@ -14,8 +14,11 @@ a 1.5M one 3.3 -> 2.8-2.9 s. The run's tree then peaks about twice as high (bcts
 MiB, about a local cluster's), with the same bytes. `voxel` gained 3 % (its simplify phase 1.23 -> 0.98 s,
 its reading 0.2 s slower) for twice the memory, and `random` lost (1.38-1.40 -> 1.48-1.60 s): theirs stay
 on threads. Reading stays on the run's threads (lazrs decodes on every core). Below PROCESS_TILE_POINTS the
-forkserver's start, which competes with the reading, costs what the processes save (a 1M street and
-lone-star's 519k: no gain).
+forkserver's start, which competes with the reading, costs what the processes save: with the server importing
+only what tiles need (139 ms; 245 with the scan reader), a 1M street ran `fps` 1.33-1.41 -> 1.19-1.24 s and
+`learned` 2.68-2.76 -> 2.56-2.68 s in processes, lone-star's 519k points gained nothing (`fps` 0.75-0.78 ->
+0.70-0.78, `learned` 1.42-1.48 -> 1.43-1.57 s), and the tree peaks higher (the 1M street's `learned` 186-228
+-> 377 MiB).
 """
 from __future__ import annotations
 
@@ -36,7 +39,7 @@ from threadpoolctl import threadpool_limits
 from pipeline.engine.allocator import map_large_arrays
 from pipeline.engine.tasks import simplify_tile, survey_tile
 
-PROCESS_TILE_POINTS = 2_000_000  # scans from this size give their tile work to worker processes
+PROCESS_TILE_POINTS = 1_000_000  # scans from this size give their tile work to worker processes
 SERVER_PRELOAD = "pipeline.engine.tile_server"  # the forkserver imports the tasks once
 PR_SET_PDEATHSIG = 1  # Linux's prctl option: a signal this process gets when its parent ends
 
