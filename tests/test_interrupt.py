@@ -29,6 +29,16 @@ def patch(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return path
 
 
+@pytest.fixture(scope="module")
+def big_patch(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A patch of PROCESS_TILE_POINTS points: an in-process run of it surveys and picks in tile processes."""
+    from pipeline.engine.processes import PROCESS_TILE_POINTS
+
+    path = tmp_path_factory.mktemp("interrupt") / "big_patch.las"
+    write_dense_patch(path, n=PROCESS_TILE_POINTS)
+    return path
+
+
 def live_processes(group: int) -> list[str]:
     """Processes of a process group that are still running (zombies, which hold nothing, excluded)."""
     listing = subprocess.run(["ps", "-o", "stat=,pid=,args=", "-g", str(group)], capture_output=True, text=True).stdout
@@ -42,10 +52,13 @@ def interruptible() -> None:
 
 
 @pytest.mark.parametrize("stop, code, where", [(signal.SIGINT, 130, "cluster"), (signal.SIGTERM, 143, "cluster"),
-                                              (signal.SIGINT, 130, "in process")])
-def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, stop, code, where):
+                                              (signal.SIGINT, 130, "in process"),
+                                              (signal.SIGTERM, 143, "tile processes")])
+def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, big_patch, stop, code, where):
     out = tmp_path / "out.laz"
-    here = 1_000_000 if where == "in process" else 0  # the 300k patch on this process's threads, or on a cluster
+    if where == "tile processes":  # in-process, its tiles surveyed and picked in forkserver processes
+        patch = big_patch
+    here = 0 if where == "cluster" else 10_000_000  # on this process's threads (and tile processes), or a cluster
     (tmp_path / "place.toml").write_text(f"[run]\nin_process_points = {here}\n")
     command = [sys.executable, "-m", "pipeline.apps.cli", "run", str(patch), "-r", "0.1", "-o", str(out), "--tile-size", "2",
                "-w", "2", "--config", str(tmp_path / "place.toml"), "-q"]
@@ -66,7 +79,7 @@ def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, stop, code,
     again = subprocess.run(command[:-1], capture_output=True, text=True, timeout=HANG_GUARD_S)
     assert again.returncode == 0, again.stderr
     assert "finished earlier" in again.stdout, again.stdout
-    assert laspy.read(out).header.point_count == 30_000
+    assert laspy.read(out).header.point_count == round(0.1 * laspy.open(patch).header.point_count)
     assert not list(tmp_path.glob(".out.laz.work-*"))
 
 

@@ -114,3 +114,32 @@ def test_a_pool_broken_before_a_phase_starts_afresh_for_it(tmp_path):
         assert isinstance(executor.processes.submit(os._exit, 9).exception(), BrokenProcessPool)
         results = map_tasks(executor, dies_the_first_time, [1, 2], str(marker), desc="simplify", progress=Progress("off"))
     assert results == [2, 4]
+
+
+def sigterm_disposition(answers) -> None:
+    """Report this process's SIGTERM disposition (run in a process forked from the forkserver)."""
+    import signal
+
+    answers.put(signal.getsignal(signal.SIGTERM) == signal.SIG_DFL)
+
+
+def test_the_forkserver_outlives_sigterm_but_what_it_forks_does_not():
+    """The server ignores SIGTERM, so a stop sent to the run's process group cannot break the pool under the
+    run; any other process forked from it (not a tile worker, which ignores SIGTERM in its setup) has SIGTERM's
+    default again."""
+    import multiprocessing
+    import signal
+    from multiprocessing import forkserver
+
+    with tile_processes(1) as pool:
+        assert pool.submit(signal.getsignal, signal.SIGTERM).result() == signal.SIG_IGN  # a worker ignores it
+        server = forkserver._forkserver._forkserver_pid
+        ignored = int(next(line for line in Path(f"/proc/{server}/status").read_text().splitlines()
+                           if line.startswith("SigIgn:")).split()[1], 16)
+        assert ignored & (1 << (signal.SIGTERM - 1))
+        context = multiprocessing.get_context("forkserver")
+        answers = context.Queue()
+        other = context.Process(target=sigterm_disposition, args=(answers,))
+        other.start()
+        assert answers.get(timeout=60) is True
+        other.join(timeout=60)

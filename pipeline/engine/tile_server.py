@@ -7,11 +7,20 @@ therefore starts it with Ctrl-C ignored (an ignored signal stays ignored across 
 server ignores Ctrl-C itself; the handler is Python's own again before that, so whatever else it forks
 later in the same process (Python 3.14 forks every new process from a forkserver by default) takes Ctrl-C
 as usual, and a worker of ours ignores it in its own setup.
+
+A SIGTERM to the process group (a scheduler's stop) killed the server too, and its workers with it (they die with
+their parent): the pool broke under the run while it cancelled its tasks, and Python 3.11's pool then printed an
+InvalidStateError traceback under the run's one line. The server ignores SIGTERM (it ends when the run's process
+does, which decides how to stop); each process forked from it has SIGTERM's default again, so nothing else it
+forks inherits the exemption, and a worker of ours ignores SIGTERM in its own setup.
 """
 from __future__ import annotations
 
+import os
 import signal
 
 import pipeline.engine.tasks  # noqa: F401  (imported once here: each worker is forked with it)
 
 signal.signal(signal.SIGINT, signal.default_int_handler)
+signal.signal(signal.SIGTERM, signal.SIG_IGN)
+os.register_at_fork(after_in_child=lambda: signal.signal(signal.SIGTERM, signal.SIG_DFL))
