@@ -53,6 +53,7 @@ def interruptible() -> None:
 
 @pytest.mark.parametrize("stop, code, where", [(signal.SIGINT, 130, "cluster"), (signal.SIGTERM, 143, "cluster"),
                                               (signal.SIGINT, 130, "in process"),
+                                              (signal.SIGINT, 130, "tile processes"),
                                               (signal.SIGTERM, 143, "tile processes")])
 def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, big_patch, stop, code, where):
     out = tmp_path / "out.laz"
