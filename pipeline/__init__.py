@@ -41,7 +41,8 @@ def run(inputs: str | Path | Sequence[str | Path], output: str | Path | None = N
     `client` reuses the caller's Dask client (no cluster started); `scheduler` (tcp://host:port) runs on
     an existing Dask cluster; otherwise a scan of at most `in_process_points` (3M at 2 workers; 9M for
     `voxel` and `random`; 21M for `fps` and `learned`, whose tiles go to worker processes from 1M points)
-    points runs on `workers` threads of this process, and a larger one on a local cluster started for the call. What the CLI notes on stderr (lengths converted, metres assumed, ...) comes as a `PipelineNote` warning.
+    points runs on `workers` threads of this process, and a larger one on a local cluster started for the call.
+    What the CLI notes on stderr (lengths converted, metres assumed, ...) comes as a `PipelineNote` warning.
     """
     from pipeline.engine.runner import run_scan
     from pipeline.progress import Progress
