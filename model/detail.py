@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from model.geometry import FRAME_POINTS, local_features, roughness
+from model.geometry import FRAME_POINTS, local_features, nearest_member, roughness
 from model.learning import DETAIL_WEIGHTS
 from model.selection import FillLoss, Tile
 from model.rules import morton_order
@@ -115,9 +115,7 @@ def described_tile(tile: Tile, budget: int) -> tuple[Tile, np.ndarray]:
     halo_curve = halo[morton_order(tile.xyz[halo])] if len(halo) else halo
     kept = np.sort(np.concatenate([systematic_picks(tile.curve, count, 0.5), systematic_picks(halo_curve, halo_count, 0.5)]))
     seen = Tile(tile.xyz[kept], tile.core[kept], tile.centre, tile.seed)
-    _, nearest = KDTree(np.ascontiguousarray(seen.xyz[seen.core], dtype=np.float64)).query(
-        np.ascontiguousarray(tile.xyz[tile.core], dtype=np.float64), k=1)
-    return seen, nearest.astype(np.int64)
+    return seen, nearest_member(tile.xyz, kept[seen.core], np.flatnonzero(tile.core))
 
 
 def relative(loss: np.ndarray, cap: float = 20.0) -> np.ndarray:

@@ -76,6 +76,23 @@ def neighbours(tree: KDTree, xyz: np.ndarray, rows: np.ndarray, k: int, order: n
     return Neighbours(indices, sq_dist)
 
 
+def nearest_member(xyz: np.ndarray, members: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """(q,) the position in `members` (m,) of the member nearest to each of xyz[queries] (both index the (n, 3)
+    points xyz). A query that is a member is its own nearest, without a tree search: a search would return
+    it or an exact twin among the members, and a thinning's values at twins are the same (their
+    neighbourhoods list the same points), so only the other queries are searched (on bcts's tiles, 60 %
+    and 75 % of the survey's two such searches)."""
+    slot = np.full(len(xyz), -1, dtype=np.int64)
+    slot[members] = np.arange(len(members))
+    found = slot[queries]
+    rest = np.flatnonzero(found < 0)
+    if len(rest):
+        tree = KDTree(np.ascontiguousarray(xyz[members], dtype=np.float64))
+        _, index = tree.query(np.ascontiguousarray(xyz[queries[rest]], dtype=np.float64), k=1)
+        found[rest] = index
+    return found
+
+
 def local_frames(xyz: np.ndarray, nbrs: Neighbours,
                  rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Eigenvalues (m, 3) float64 ascending and unit normals (m, 3) float32 of the covariance of each point

@@ -24,8 +24,7 @@ from typing import Callable, Iterable
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from model.geometry import FRAME_POINTS, local_features
-from model.metrics import nearest
+from model.geometry import FRAME_POINTS, local_features, nearest_member
 from model.rules import distinct_of_sorted, interleaved, radical_inverse_order
 from model.selection import FillLoss, Selection, Tile, topped_up
 
@@ -133,7 +132,7 @@ def curvature_loss(tile: Tile, budget: int, phase: float = 0.5, here: np.ndarray
     fill = systematic_picks(tile.curve, budget, phase)
     here = local_features(tile.xyz, core, order=tile.core_order).mean_curvature[core] if here is None else here
     thinned = local_features(tile.xyz[fill], np.arange(len(fill))).mean_curvature  # point_features' values, no normals
-    return np.abs(here - thinned[nearest(tile.xyz[fill], tile.xyz[core]).index])
+    return np.abs(here - thinned[nearest_member(tile.xyz, fill, core)])
 
 
 def weighted_picks(curve: np.ndarray, weights: np.ndarray | None, count: int, phase: float) -> np.ndarray:

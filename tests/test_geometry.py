@@ -4,7 +4,7 @@ import pytest
 
 from model import geometry
 from model.geometry import (bandwidth, curvature, knn, local_eigenvalues, local_features, local_frames, mean_curvature,
-                            point_features, roughness)
+                            nearest_member, point_features, roughness)
 from model.rules import column_max, column_mean, column_min, grid_xyz, morton_order, stable_argsort
 from tiling.plan import DensityGrid
 
@@ -299,3 +299,16 @@ def test_morton_order_keeps_file_order_among_points_of_one_code():
     xyz = np.repeat(np.random.default_rng(3).uniform(0, 10, (300, 3)), 4, axis=0)[::-1].copy()
     runs = morton_order(xyz).reshape(300, 4)  # each point's four copies in a row, lowest index first
     assert (np.diff(runs, axis=1) == 1).all()
+
+
+def test_nearest_member_is_the_tree_search_with_members_their_own():
+    """Members answer themselves; every other query gets the member a full search of the members finds."""
+    from pykdtree.kdtree import KDTree
+    xyz = plane(2_000, noise=0.01, seed=4)
+    members = np.random.default_rng(1).choice(len(xyz), 300, replace=False)
+    queries = np.arange(0, len(xyz), 3)
+    found = nearest_member(xyz, members, queries)
+    _, searched = KDTree(xyz[members]).query(xyz[queries], k=1)
+    assert np.array_equal(found, searched)
+    is_member = np.isin(queries, members)
+    assert is_member.any() and np.array_equal(members[found[is_member]], queries[is_member])
