@@ -10,7 +10,7 @@ from model.geometry import curvature, knn, local_eigenvalues
 from model.rules import column_max, column_min, distinct_count, kept_count, spread_order
 from model.selection import Selection, Tile, topped_up
 
-FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core
+FPS_OVERSHOOT = 1.06  # extra samples asked of FPS over core+halo so enough of them land in the core (none without a halo)
 VOXEL_COUNT_SLACK = 0.02  # the searched cell may give up to 2 % more voxels than the budget; the rest are trimmed
 
 
@@ -60,7 +60,7 @@ def farthest_core_picks(tile: Tile, budget: int) -> Selection:
     rng = np.random.default_rng(tile.seed)
     start = int(core[rng.integers(len(core))])
     points = np.ascontiguousarray(tile.xyz, dtype=np.float32)
-    wanted = budget * n / len(core) * FPS_OVERSHOOT
+    wanted = budget * n / len(core) * (FPS_OVERSHOOT if n > len(core) else 1.0)  # FPS's order is the same for any count
     while True:
         samples = min(n, int(np.ceil(wanted)) + 1)
         order = _first_occurrences(_fps_order(points, samples, start))
