@@ -52,11 +52,13 @@ def measured_loss(tile: Tile, budget: int) -> FillLoss:
 
 
 def stratified_selection(tile: Tile, budget: int, loss_of: LossOf,
-                         cover_spacings: float = COVER_SPACINGS) -> Selection:
+                         cover_spacings: float = COVER_SPACINGS, strength: float = 1.0) -> Selection:
     """The fill and cover of the module doc. For a tile on its own (no `tile.context`), `loss_of(tile,
-    budget)` sets the keep weights 1 + relative loss and the cover radius is `cover_spacings` typical
-    spacings of a trial fill; a pipeline run's context holds the scan-wide weights and radius instead,
-    and the prefix the run keeps (fill and cover are planned for it; the picks after it are random)."""
+    budget)` sets the keep weights 1 + strength x relative loss and the cover radius is `cover_spacings`
+    typical spacings of a trial fill at strength 1 (so a stronger weighting, which packs its picks closer
+    on detail, does not shrink the radius: the run's survey measures spacings so too); a pipeline run's
+    context holds the scan-wide weights and radius instead, and the prefix the run keeps (fill and cover
+    are planned for it; the picks after it are random)."""
     context = tile.context
     budget = min(budget, tile.core_count)
     if budget == 0:
@@ -66,11 +68,11 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf,
     curve = tile.curve
     rng = np.random.default_rng(tile.seed)
     phase = rng.random()
-    weights = fill_weights(loss_of(tile, planned), 1.0) if context is None else fill_weights(context.loss,
-                                                                                              context.detail_scale)
-    curve_weights = curve_of(weights, curve)
+    loss = loss_of(tile, planned) if context is None else context.loss
+    curve_weights = curve_of(fill_weights(loss, strength if context is None else context.detail_scale), curve)
     trial = weighted_picks(curve, curve_weights, planned, phase)
-    radius = cover_spacings * typical_spacing(tile.xyz[trial]) if context is None else context.cover_radius
+    radius = context.cover_radius if context is not None else cover_spacings * typical_spacing(
+        tile.xyz[trial if strength == 1.0 else trial_fill(tile, planned, loss, phase)])
     fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase), planned,
                                      radius, len(hole_cover(tile.xyz, trial, core, radius, curve)))
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
@@ -107,11 +109,12 @@ def curve_of(weights: np.ndarray | None, curve: np.ndarray) -> np.ndarray | None
     return None if weights is None else weights[curve]
 
 
-def trial_fill(tile: Tile, budget: int, loss: FillLoss) -> np.ndarray:
-    """Indices of the points a fill of `budget` core points with keep weights 1 + relative loss picks (at
-    phase 0.5, no hole cover): what a run's survey measures a tile's spacing and holes on."""
+def trial_fill(tile: Tile, budget: int, loss: FillLoss, phase: float = 0.5) -> np.ndarray:
+    """Indices of the points a fill of `budget` core points with keep weights 1 + relative loss picks (no hole
+    cover): what a run's survey measures a tile's spacing and holes on (at phase 0.5), whatever the
+    method's loss strength, so the hole radius is the default's for any."""
     curve = tile.curve
-    return weighted_picks(curve, curve_of(fill_weights(loss, 1.0), curve), min(budget, tile.core_count), 0.5)
+    return weighted_picks(curve, curve_of(fill_weights(loss, 1.0), curve), min(budget, tile.core_count), phase)
 
 
 def pick_spacings(picks: np.ndarray) -> np.ndarray:

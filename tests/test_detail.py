@@ -46,6 +46,28 @@ def test_default_keeps_the_edge_and_the_pole_where_uniform_thinning_does_not():
     assert pole_gap["learned"] < 0.7 * pole_gap["uniform"]
 
 
+def test_detail_sets_how_much_the_edge_and_the_pole_keep_and_the_plane_pays_for_it():
+    """`detail` scales the loss's share of the keep weights: 0 keeps about a uniform thinning's share on the
+    edge and the pole, and each step up to the default keeps more there and less on the floor."""
+    from model.methods import Learned
+
+    tile, near_edge, on_pole = edge_pole_plane()
+    ratio = 0.1
+    budget = round(ratio * len(tile.xyz))
+    floor = (np.abs(tile.xyz[:, 2] - tile.xyz[:, 2].min()) < 0.05) & ~on_pole
+    shares = {}
+    for detail in (0.0, 0.5, 1.0, 4.0):
+        kept = Learned(detail=detail)(tile, budget).indices
+        assert len(np.unique(kept)) == budget
+        shares[detail] = [share_kept(kept, mask, ratio) for mask in (near_edge, on_pole, floor)]
+    assert shares[0.0][0] < 1.25 and shares[0.0][1] < 1.5
+    for low, high in ((0.0, 0.5), (0.5, 1.0)):
+        assert shares[high][0] > shares[low][0] and shares[high][1] > shares[low][1]
+        assert shares[high][2] < shares[low][2]
+    assert shares[4.0][1] >= shares[1.0][1]  # beyond about 2 the weights follow the loss alone: little changes
+    assert Learned() == get_simplifier("learned") and Learned().detail == 1.0
+
+
 def test_the_loss_is_described_at_the_outputs_scale_and_told_to_the_nearest_points():
     """Below a ratio of 1 / DESCRIBED_PER_PICK a tile is described on an even thinning to that many points
     per pick, core and halo alike; each core point takes the prediction of the nearest described core point

@@ -168,18 +168,20 @@ def hole_voxels(occupied: np.ndarray, filled: np.ndarray, sizes: np.ndarray, rad
     return np.maximum(voxels_at(occupied, sizes, edge) - voxels_at(filled, sizes, edge), 0.0)
 
 
-def saliency_weights(counts: np.ndarray, levels: np.ndarray, loss_sums: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def saliency_weights(counts: np.ndarray, levels: np.ndarray, loss_sums: np.ndarray,
+                     strength: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Tile weights for tile_budgets and each tile's detail scale, so that tiled keep weights are those of
-    one pass over the whole scan: a point's weight is 1 + loss / (the scan's mean loss), and a tile
-    holding it gets the sum of its points' weights.
+    one pass over the whole scan: a point's weight is 1 + strength x loss / (the scan's mean loss), and a
+    tile holding it gets the sum of its points' weights.
 
     counts: (tiles,) core points; levels: (tiles,) mean absolute loss per core point; loss_sums: (tiles,)
-    sums of the relative loss (loss / level) over the core. Scales are level / scan mean (0 if no loss).
+    sums of the relative loss (loss / level) over the core. Scales are strength x level / scan mean (0 if
+    no loss).
     """
     counts = np.asarray(counts, dtype=np.float64)
     levels = np.asarray(levels, dtype=np.float64)
     scan_level = float((counts * levels).sum() / max(counts.sum(), 1.0))
-    scales = levels / scan_level if scan_level > 0 else np.zeros_like(levels)
+    scales = strength * levels / scan_level if scan_level > 0 else np.zeros_like(levels)
     return counts + scales * np.asarray(loss_sums, dtype=np.float64), scales
 
 

@@ -139,13 +139,13 @@ class ScanFill:
 
 
 def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray, target: int,
-              cover_spacings: float) -> tuple[np.ndarray, ScanFill]:
+              cover_spacings: float, strength: float = 1.0) -> tuple[np.ndarray, ScanFill]:
     """Tile weights for the budgets and the fill settings that make tiles keep points as one stratified
-    pass over the whole scan would: weights 1 + loss / the scan's mean loss, and a hole radius of
+    pass over the whole scan would: weights 1 + strength x loss / the scan's mean loss, and a hole radius of
     `cover_spacings` times the scan's typical pick spacing, but never finer than the even spacing `target`
     points can cover (below it the floors would exceed the target and tiles cut their hole cover short)."""
     weights, scales = saliency_weights(np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys]),
-                                       np.array([s.loss_sum for s in surveys]))
+                                       np.array([s.loss_sum for s in surveys]), strength)
     spacing = pooled_median([s.spacings for s in surveys], np.array([s.picks for s in surveys]))
     return weights, ScanFill(scales, max(cover_spacings * spacing, even_spacing(occupied, sizes, target)))
 
@@ -168,7 +168,8 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
             # saliency shared as one pass would: one fill rate for every tile, plus a point for each hole its
             # trial fill left, and at least a point in every voxel of the hole radius, so a sparse tile can
             # cover all its holes
-            weights, fill = scan_fill(surveys, occupied, sizes, target, simplifier.cover_spacings)
+            weights, fill = scan_fill(surveys, occupied, sizes, target, simplifier.cover_spacings,
+                                      simplifier.loss_strength())
             holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes, fill.cover_radius)
             floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)
         else:  # spaced evenly: tiles share out the points as one pass over the whole scan would
