@@ -80,8 +80,8 @@ def nearest_member(xyz: np.ndarray, members: np.ndarray, queries: np.ndarray) ->
     """(q,) the position in `members` (m,) of the member nearest to each of xyz[queries] (both index the (n, 3)
     points xyz). A query that is a member is its own nearest, without a tree search: a search would return
     it or an exact twin among the members, and a thinning's values at twins are the same (their
-    neighbourhoods list the same points), so only the other queries are searched (on bcts's tiles, 60 %
-    and 75 % of the survey's two such searches)."""
+    neighbourhoods list the same points), so only the other queries are searched: of the survey's two such
+    searches on bcts's tiles, 60 % and 75 % of the queries."""
     slot = np.full(len(xyz), -1, dtype=np.int64)
     slot[members] = np.arange(len(members))
     found = slot[queries]
