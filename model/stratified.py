@@ -8,14 +8,10 @@ and holes, FPS's is that it flattens the density pattern. This method takes each
 1. fill: every core point has the same chance to be kept, and the picks are drawn by systematic
    sampling along a Morton curve through the tile, so each run of 1/ratio consecutive points on the
    curve keeps one: the density pattern of random sampling without its clumps;
-2. cover: no occupied area wider than `COVER_SPACINGS` output spacings is left without a pick (holes
-   in sparse areas: far ranges, isolated objects, stray returns), the output spacing being the spacing
-   an even thinning to the count would have (even_spacing): points farther than half that width from
-   every pick are covered by farthest point sampling continued from the fill (largest gap first), and
-   the fill gives up as many picks, so the count stays exact and no hole is left open while the budget
-   can close it. The radius follows the count and the occupied space, not where the fill crowds its
-   picks: measured on a trial fill's own spacing, it widened where weights crowd picks on detail (an
-   airborne scan's Chamfer 1.62x an untiled FPS's at 0.1, 1.33x now).
+2. cover: points still farther than `COVER_SPACINGS` typical output spacings from every pick (holes in
+   sparse areas: far ranges, isolated objects, stray returns) are covered by farthest point sampling
+   continued from the fill (largest gap first), and the fill gives up as many picks, so the count
+   stays exact and no hole is left open while the budget can close it.
 
 Picks come in priority order (fill picks in radical-inverse order along the curve, hole picks in FPS
 order, interleaved by rank), so a prefix is itself a spread-out, coarser result.
@@ -29,12 +25,11 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from model.geometry import FRAME_POINTS, local_features, nearest_member
-from model.rules import (column_max, column_min, distinct_of_sorted, interleaved, occupied_voxels, radical_inverse_order,
-                         voxel_edge_for)
+from model.rules import distinct_of_sorted, interleaved, radical_inverse_order
 from model.selection import FillLoss, Selection, Tile, topped_up
 
-COVER_SPACINGS = 2.0  # no occupied area wider than this many output spacings is left without a pick
-EVEN_LEVELS = 2.0 ** np.arange(-8, 9)  # voxel edges, relative to a 2-D guess, at which a tile alone counts its voxels
+COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
+SPACING_QUANTILES = np.linspace(0.0, 1.0, 65)  # a tile reports its picks' spacing as these quantiles
 MAX_COVER_ROUNDS = 6  # fill-and-cover rounds before the cover is cut to what the fill leaves
 REACH_NEIGHBOURS = 16  # nearest far points tabled per far point for the hole cover (a pick reaches about 4)
 
@@ -59,9 +54,11 @@ def measured_loss(tile: Tile, budget: int) -> FillLoss:
 def stratified_selection(tile: Tile, budget: int, loss_of: LossOf,
                          cover_spacings: float = COVER_SPACINGS, strength: float = 1.0) -> Selection:
     """The fill and cover of the module doc. For a tile on its own (no `tile.context`), `loss_of(tile,
-    budget)` sets the keep weights 1 + strength x relative loss and the cover radius is cover_radius of
-    the core's even spacing; a pipeline run's context holds the scan-wide weights and radius instead, and
-    the prefix the run keeps (fill and cover are planned for it; the picks after it are random)."""
+    budget)` sets the keep weights 1 + strength x relative loss and the cover radius is `cover_spacings`
+    typical spacings of a trial fill at strength 1 (so a stronger weighting, which packs its picks closer
+    on detail, does not shrink the radius: the run's survey measures spacings so too); a pipeline run's
+    context holds the scan-wide weights and radius instead, and the prefix the run keeps (fill and cover
+    are planned for it; the picks after it are random)."""
     context = tile.context
     budget = min(budget, tile.core_count)
     if budget == 0:
@@ -74,8 +71,8 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf,
     loss = loss_of(tile, planned) if context is None else context.loss
     curve_weights = curve_of(fill_weights(loss, strength if context is None else context.detail_scale), curve)
     trial = weighted_picks(curve, curve_weights, planned, phase)
-    radius = context.cover_radius if context is not None else cover_radius(
-        even_spacing_of(tile.xyz[core], planned), cover_spacings)
+    radius = context.cover_radius if context is not None else cover_spacings * typical_spacing(
+        tile.xyz[trial if strength == 1.0 else trial_fill(tile, planned, loss, phase)])
     fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase), planned,
                                      radius, len(hole_cover(tile.xyz, trial, core, radius, curve)))
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
@@ -112,31 +109,21 @@ def curve_of(weights: np.ndarray | None, curve: np.ndarray) -> np.ndarray | None
     return None if weights is None else weights[curve]
 
 
-def trial_fill(tile: Tile, budget: int, loss: FillLoss) -> np.ndarray:
-    """Indices of the points a fill of `budget` core points with keep weights 1 + relative loss picks (at
-    phase 0.5, no hole cover): what a run's survey counts a tile's holes on."""
+def trial_fill(tile: Tile, budget: int, loss: FillLoss, phase: float = 0.5) -> np.ndarray:
+    """Indices of the points a fill of `budget` core points with keep weights 1 + relative loss picks (no hole
+    cover): what a run's survey measures a tile's spacing and holes on (at phase 0.5), whatever the
+    method's loss strength, so the hole radius is the default's for any."""
     curve = tile.curve
-    return weighted_picks(curve, curve_of(fill_weights(loss, 1.0), curve), min(budget, tile.core_count), 0.5)
+    return weighted_picks(curve, curve_of(fill_weights(loss, 1.0), curve), min(budget, tile.core_count), phase)
 
 
-def cover_radius(even_spacing: float, cover_spacings: float) -> float:
-    """The hole radius: half `cover_spacings` output spacings (`even_spacing`, the spacing of an even thinning
-    to the count), so no area wider than `cover_spacings` of them is left empty, and never below one output
-    spacing, the finest the count can cover (below it the cover would need more picks than there are)."""
-    return max(cover_spacings / 2 * even_spacing, even_spacing)
-
-
-def even_spacing_of(xyz: np.ndarray, count: int) -> float:
-    """The voxel edge at which the (n, 3) points occupy `count` voxels (log-log interpolated between doubling
-    edges around a 2-D guess): the spacing of an even thinning to `count`, as a run measures it over the
-    whole scan (tiling.budgets.even_spacing); 0 for coincident points or no count."""
-    extent = column_max(xyz) - column_min(xyz) if len(xyz) else np.zeros(3)
-    if count <= 0 or extent.max() <= 0:
-        return 0.0
-    largest = np.sort(extent)[1:]  # the two longest sides: a surface's extent, however it is turned
-    guess = float(np.sqrt(max(largest[0], largest[1] * 1e-3) * largest[1] / count))
-    sizes = guess * EVEN_LEVELS
-    return voxel_edge_for(occupied_voxels(xyz, sizes), sizes, count)
+def pick_spacings(picks: np.ndarray) -> np.ndarray:
+    """(len(SPACING_QUANTILES),) quantiles of the nearest-pick distance among `picks` (m, 3) (empty below two
+    picks): pooled over tiles' trial fills, the scan's typical output spacing."""
+    if len(picks) < 2:
+        return np.empty(0)
+    distance, _ = KDTree(np.ascontiguousarray(picks, dtype=np.float64)).query(picks, k=2)
+    return np.quantile(distance[:, 1], SPACING_QUANTILES)
 
 
 def curvature_loss(tile: Tile, budget: int, phase: float = 0.5, here: np.ndarray | None = None) -> np.ndarray:
@@ -186,6 +173,15 @@ def systematic_picks(curve: np.ndarray, count: int, phase: float) -> np.ndarray:
         return np.empty(0, dtype=np.int64)
     positions = np.floor((np.arange(count) + phase) * (len(curve) / count)).astype(np.int64)
     return curve[np.minimum(positions, len(curve) - 1)]
+
+
+def typical_spacing(points: np.ndarray) -> float:
+    """Median distance from each point to its nearest other point (0 for fewer than two points)."""
+    if len(points) < 2:
+        return 0.0
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    distance, _ = KDTree(points).query(points, k=2)
+    return float(np.median(distance[:, 1]))
 
 
 def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius: float,

@@ -43,7 +43,7 @@ def test_default_keeps_the_edge_and_the_pole_where_uniform_thinning_does_not():
     assert share_kept(learned, on_pole, ratio) > 2.0 and share_kept(uniform, on_pole, ratio) < 1.5
     pole_gap = {name: cKDTree(tile.xyz[kept]).query(tile.xyz[on_pole])[0].max()
                 for name, kept in (("learned", learned), ("uniform", uniform))}
-    assert pole_gap["learned"] < 0.75 * pole_gap["uniform"]
+    assert pole_gap["learned"] < 0.7 * pole_gap["uniform"]
 
 
 def test_detail_sets_how_much_the_edge_and_the_pole_keep_and_the_plane_pays_for_it():

@@ -184,8 +184,7 @@ def test_budgets_are_the_clipped_rate_a_bisection_finds_whatever_the_floors_coun
 def test_hole_voxels_are_the_voxels_a_trial_fill_missed():
     """A dense plane with a sparse strip: picks of the dense part leave the strip's voxels empty; counted on the
     core's grid (a subset's own minimum would shift its grid), at a voxel edge of sqrt(pi) x the radius."""
-    from model.rules import occupied_voxels
-    from tiling.budgets import DISC_EDGE, hole_voxels
+    from tiling.budgets import DISC_EDGE, hole_voxels, occupied_voxels
 
     rng = np.random.default_rng(9)
     plane = np.column_stack([rng.uniform([0, 0], [10, 10], size=(20_000, 2)), np.zeros(20_000)])
@@ -221,8 +220,7 @@ def test_target_rounds_half_up():
 def test_coverage_weights_give_equal_areas_equal_shares_whatever_their_density():
     """Two 10 x 10 planes, one 20x denser: counts would give the dense one 20x the points, an even spacing
     over both gives them about the same; the weights follow the size at which the total meets the target."""
-    from model.rules import occupied_voxels
-    from tiling.budgets import coverage_weights
+    from tiling.budgets import coverage_weights, occupied_voxels
 
     rng = np.random.default_rng(0)
     dense = np.column_stack([rng.uniform(0, 10, size=(40_000, 2)), np.zeros(40_000)])
@@ -252,6 +250,18 @@ def test_saliency_weights_are_the_sums_of_one_pass_keep_weights():
     np.testing.assert_array_equal(flat, counts) and np.testing.assert_array_equal(flat_scales, 0)
 
 
+def test_pooled_median_of_quantile_sketches_matches_the_union():
+    from model.stratified import SPACING_QUANTILES
+    from tiling.budgets import pooled_median
+
+    rng = np.random.default_rng(2)
+    samples = [rng.lognormal(0, 0.3, 20_000), rng.lognormal(1, 0.3, 5_000), np.empty(0)]
+    sketches = [np.quantile(s, SPACING_QUANTILES) if len(s) else s for s in samples]
+    pooled = pooled_median(sketches, np.array([len(s) for s in samples]))
+    assert abs(pooled - np.median(np.concatenate(samples))) < 0.03
+    assert pooled_median([np.empty(0)], np.array([0])) == 0.0
+
+
 def test_far_apart_sites_keep_fine_cells_and_tiles_within_the_budget():
     """Two dense 100 m sites 200 km apart: a dense grid over the extent would have had to coarsen its cells
     (to ~100 m, each holding a whole site); the sparse grid keeps tile_size / 8 cells, so every tile stays
@@ -269,8 +279,7 @@ def test_far_apart_sites_keep_fine_cells_and_tiles_within_the_budget():
 
 
 def test_voxels_at_a_measured_size_are_the_counts_and_fall_between_them():
-    from model.rules import occupied_voxels
-    from tiling.budgets import voxels_at
+    from tiling.budgets import occupied_voxels, voxels_at
 
     rng = np.random.default_rng(6)
     plane = np.column_stack([rng.uniform(0, 10, size=(20_000, 2)), np.zeros(20_000)])
@@ -282,8 +291,7 @@ def test_voxels_at_a_measured_size_are_the_counts_and_fall_between_them():
 
 
 def test_even_spacing_is_the_voxel_edge_whose_scan_total_is_the_target():
-    from model.rules import occupied_voxels
-    from tiling.budgets import even_spacing, voxels_at
+    from tiling.budgets import even_spacing, occupied_voxels, voxels_at
 
     rng = np.random.default_rng(7)
     planes = [np.column_stack([rng.uniform(0, 10, size=(n, 2)) + [20 * k, 0], np.zeros(n)])
@@ -298,7 +306,7 @@ def test_even_spacing_is_the_voxel_edge_whose_scan_total_is_the_target():
 def test_occupied_voxels_count_each_level_as_its_own_grid_would():
     """Counted level from level (the occupied voxels halved), the counts are those of each grid on its own:
     distinct floor((p - low) / size) rows, on a cloud far from the origin with clumps and duplicates."""
-    from model.rules import occupied_voxels
+    from tiling.budgets import occupied_voxels
 
     rng = np.random.default_rng(8)
     xyz = np.concatenate([rng.normal(0, 3, size=(5_000, 3)), rng.uniform(-20, 20, size=(2_000, 3))]) + [-7e5, 5e6, -3.1]

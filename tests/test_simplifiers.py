@@ -120,7 +120,7 @@ def test_voxel_cell_search_meets_the_budget_from_any_start(start_over_survey):
     it, or with no start, the cell found gives the budget's voxels, at most the slack more."""
     from model.baselines import VOXEL_COUNT_SLACK, _cell_for_budget, axis_columns
     from model.selection import VoxelCounts
-    from model.rules import occupied_voxels
+    from tiling.budgets import occupied_voxels
 
     tile = make_tile()
     points = tile.xyz[tile.core] + tile.centre
@@ -139,7 +139,7 @@ def test_voxel_cell_search_near_every_point_takes_few_counts(share, monkeypatch)
     counts (it once crawled 1 % a count: 600 counts, 0.3 s a bcts tile)."""
     import model.baselines as baselines
     from model.selection import VoxelCounts
-    from model.rules import occupied_voxels
+    from tiling.budgets import occupied_voxels
 
     distinct = make_tile().xyz + [0.0, 0.0, 50.0]
     points = np.concatenate([distinct, distinct[: len(distinct) // 20]])  # 5 % exact duplicates
@@ -159,7 +159,7 @@ def test_voxel_with_a_survey_keeps_one_point_per_voxel_and_tops_up_duplicates():
 
     from model.baselines import VOXEL_COUNT_SLACK, _cell_for_budget, axis_columns
     from model.selection import VoxelCounts
-    from model.rules import occupied_voxels
+    from tiling.budgets import occupied_voxels
 
     tile = make_tile()
     points = tile.xyz[tile.core] + tile.centre

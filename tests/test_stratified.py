@@ -6,13 +6,7 @@ from scipy.spatial import cKDTree
 from model import Tile, get_simplifier
 from model.rules import radical_inverse_order
 from model.selection import FillContext, FillLoss
-from model.stratified import hole_cover, near_along, systematic_picks
-
-
-def typical_spacing(points: np.ndarray) -> float:
-    """Median distance from each point to its nearest other point."""
-    distance, _ = cKDTree(points).query(points, k=2)
-    return float(np.median(distance[:, 1]))
+from model.stratified import hole_cover, near_along, systematic_picks, typical_spacing
 
 
 def dense_beside_sparse(seed: int = 0) -> tuple[Tile, np.ndarray]:

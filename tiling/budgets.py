@@ -3,7 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from model.rules import kept_count, voxel_edge_for
+from model.rules import (MORTON_STEPS, column_max, column_min, distinct_of_sorted, kept_count, morton_codes,
+                         sorted_distinct, voxel_edge_for)
 
 
 def tile_budgets(counts: np.ndarray, ratio: float, floors: np.ndarray | None = None,
@@ -90,6 +91,44 @@ def largest_remainder(quotas: np.ndarray, caps: np.ndarray, target: int, minimum
     return budgets
 
 
+def occupied_voxels(xyz: np.ndarray, sizes: np.ndarray, origin: np.ndarray | None = None) -> np.ndarray:
+    """(len(sizes),) number of occupied cubic voxels of each edge length among the (n, 3) points, on grids
+    from `origin` (3,) (the points' minimum by default; at most it, so a subset of a cloud is counted on
+    the cloud's grids); `sizes` ascending, each twice the one before (the survey's levels), so each
+    level's voxels are the last level's occupied ones halved: floor(x / 2s) = floor(x / s) >> 1 exactly,
+    since dividing by a power of two is exact in floating point. Once the voxels fit a Z-order code, one
+    sort serves every level left, halving being a shift of the sorted codes (1.7x faster than a sort per
+    level on bcts tiles)."""
+    sizes = np.asarray(sizes, dtype=np.float64)
+    if np.any(sizes[1:] != 2 * sizes[:-1]):
+        raise ValueError(f"voxel sizes must double from one level to the next, not {sizes.tolist()}")
+    counts = np.zeros(len(sizes), dtype=np.int64)
+    if len(xyz) == 0:
+        return counts
+    origin = column_min(xyz) if origin is None else origin
+    cells = np.floor((xyz - origin) / sizes[0]).astype(np.int64)  # (m, 3) occupied voxels so far
+    level = 0
+    while level < len(sizes) and cells.max() >= MORTON_STEPS:  # too many voxels across for a code
+        span = column_max(cells) + 1
+        if float(span[0]) * float(span[1]) * float(span[2]) < 2.0**63:  # one int64 key per voxel
+            keys = sorted_distinct((cells[:, 0] * span[1] + cells[:, 1]) * span[2] + cells[:, 2])
+            rows, layer = np.divmod(keys, span[2])
+            cells = np.column_stack([*np.divmod(rows, span[1]), layer])
+        else:  # a stray point so far off that even a key overflows: distinct rows (slower, exact)
+            cells = np.unique(cells, axis=0)
+        counts[level] = len(cells)
+        cells >>= 1
+        level += 1
+    if level == len(sizes):
+        return counts
+    codes = np.sort(morton_codes(cells))
+    for level in range(level, len(sizes)):
+        codes = distinct_of_sorted(codes)
+        counts[level] = len(codes)
+        codes >>= np.uint64(3)
+    return counts
+
+
 def coverage_weights(occupied: np.ndarray, sizes: np.ndarray, target: int) -> np.ndarray:
     """Per-tile share of a uniform-spacing pass over the whole scan: each tile's occupied voxels at the
     voxel size whose scan-wide total is `target` (log-log interpolation between the measured sizes).
@@ -144,6 +183,19 @@ def saliency_weights(counts: np.ndarray, levels: np.ndarray, loss_sums: np.ndarr
     scan_level = float((counts * levels).sum() / max(counts.sum(), 1.0))
     scales = strength * levels / scan_level if scan_level > 0 else np.zeros_like(levels)
     return counts + scales * np.asarray(loss_sums, dtype=np.float64), scales
+
+
+def pooled_median(quantiles: list[np.ndarray], sizes: np.ndarray) -> float:
+    """The median of the union of samples, each given by evenly spaced quantiles (its own length may be 0)
+    and its sample size (sizes: (samples,)); 0 when every sample is empty."""
+    values = [q for q in quantiles if len(q)]
+    if not values:
+        return 0.0
+    weights = np.concatenate([np.full(len(q), size / len(q)) for q, size in zip(quantiles, sizes) if len(q)])
+    values_flat = np.concatenate(values)
+    order = np.argsort(values_flat, kind="stable")
+    cumulative = np.cumsum(weights[order])
+    return float(values_flat[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
 
 
 def nested_budgets(parent: np.ndarray, total: int) -> np.ndarray:

@@ -14,7 +14,6 @@ import numpy as np
 from model.methods import Fill
 from model.rules import kept_count
 from model.selection import VoxelCounts
-from model.stratified import cover_radius
 from pipeline.config import RunConfig, parse_size
 from pipeline.engine.classes import ClassRule
 from pipeline.engine.execute import map_tasks
@@ -29,7 +28,7 @@ from pipeline.progress import Progress, counted
 from tiling.assemble import level_parts, seam_rejections
 from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
 from tiling.budgets import (coverage_weights, even_spacing, grouped_budgets, hole_voxels, nested_budgets,
-                            saliency_weights, voxels_at)
+                            pooled_median, saliency_weights, voxels_at)
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice
 
@@ -143,13 +142,12 @@ def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray
               cover_spacings: float, strength: float = 1.0) -> tuple[np.ndarray, ScanFill]:
     """Tile weights for the budgets and the fill settings that make tiles keep points as one stratified
     pass over the whole scan would: weights 1 + strength x loss / the scan's mean loss, and a hole radius of
-    half `cover_spacings` output spacings, the output spacing being the even spacing `target` points would
-    have (tiling.budgets.even_spacing), and never finer than it (below it the floors would exceed the target
-    and tiles cut their hole cover short). So no occupied area wider than `cover_spacings` output spacings
-    is left empty, however the weights crowd the picks on detail."""
+    `cover_spacings` times the scan's typical pick spacing, but never finer than the even spacing `target`
+    points can cover (below it the floors would exceed the target and tiles cut their hole cover short)."""
     weights, scales = saliency_weights(np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys]),
                                        np.array([s.loss_sum for s in surveys]), strength)
-    return weights, ScanFill(scales, cover_radius(even_spacing(occupied, sizes, target), cover_spacings))
+    spacing = pooled_median([s.spacings for s in surveys], np.array([s.picks for s in surveys]))
+    return weights, ScanFill(scales, max(cover_spacings * spacing, even_spacing(occupied, sizes, target)))
 
 
 def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], counts: np.ndarray,

@@ -15,12 +15,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from model.methods import Fill, Method
-from model.rules import column_mean, column_min, grid_xyz, kept_count, occupied_voxels, take_records
+from model.rules import column_mean, column_min, grid_xyz, kept_count, take_records
 from model.selection import FillContext, FillLoss, Selection, Tile, VoxelCounts
-from model.stratified import trial_fill
+from model.stratified import pick_spacings, trial_fill
 from pipeline.engine.classes import ClassRule, class_histogram
 from pipeline.engine.workdir import BucketedPiece, WorkDir, save_npz, write_atomically
 from tiling.bucket import SubCellIndex, bucket_by_cell, bucket_by_sub_cell
+from tiling.budgets import occupied_voxels
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, StoredPoints, TileStore
 
@@ -172,13 +173,15 @@ class SurveyJob:
 @dataclass(frozen=True)
 class TileSurvey:
     """What a tile tells the run: occupied voxels (levels,), its core count, mean absolute fill loss,
-    the relative loss summed over the core, and the voxels (levels,) a trial fill's picks occupy, on the
-    core's grids (zeros for a method with no fill)."""
+    the relative loss summed over the core, (quantiles,) spacings of a trial fill's picks, of `picks`, and
+    the voxels (levels,) those picks occupy, on the core's grids (zeros for a method with no fill)."""
 
     occupied: np.ndarray
     core_count: int
     level: float
     loss_sum: float
+    spacings: np.ndarray
+    picks: int
     filled: np.ndarray
 
 
@@ -189,16 +192,17 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     core_xyz, sizes = tile.xyz if tile.core.all() else tile.xyz[tile.core], np.asarray(job.sizes)
     occupied = occupied_voxels(core_xyz, sizes)
     budget = kept_count(job.ratio, tile.core_count)
-    loss, filled = FillLoss(None, 0.0), np.zeros_like(occupied)
+    loss, spacings, filled = FillLoss(None, 0.0), np.empty(0), np.zeros_like(occupied)
     if isinstance(job.simplifier, Fill) and budget > 0:
         loss = job.simplifier.fill_loss(tile, budget)
-        filled = occupied_voxels(tile.xyz[trial_fill(tile, budget, loss)], sizes, origin=column_min(core_xyz))
+        picks = tile.xyz[trial_fill(tile, budget, loss)]
+        spacings, filled = pick_spacings(picks), occupied_voxels(picks, sizes, origin=column_min(core_xyz))
     loss_sum = float(loss.relative[tile.core].sum()) if loss.relative is not None else 0.0
-    survey = TileSurvey(occupied, tile.core_count, loss.level, loss_sum, filled)
+    survey = TileSurvey(occupied, tile.core_count, loss.level, loss_sum, spacings, budget, filled)
     arrays = {} if loss.relative is None else {"relative": loss.relative.astype(np.float32)}
     write_atomically(Path(job.survey_path), lambda tmp: save_npz(
-        tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum, filled=filled,
-        **arrays))
+        tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
+        spacings=spacings, picks=budget, filled=filled, **arrays))
     return survey
 
 
@@ -206,7 +210,7 @@ def load_survey(path: Path) -> TileSurvey:
     """A finished survey's summary (the per-point loss stays on disk)."""
     with np.load(path) as saved:
         return TileSurvey(saved["occupied"], int(saved["core_count"]), float(saved["level"]), float(saved["loss_sum"]),
-                          saved["filled"])
+                          saved["spacings"], int(saved["picks"]), saved["filled"])
 
 
 def load_fill_loss(path: Path) -> FillLoss:
