@@ -146,7 +146,8 @@ class DetailFill(Fill):
     """A fill weighted by a curvature loss, `detail` times as strongly as the default: keep weights
     1 + detail x loss / the scan's mean loss. Below 1 the output's density follows the scan's more evenly
     (Chamfer and the 99th-percentile distance fall); above 1 detail keeps more (the curvature error falls):
-    the trade bench/results/frontier.md sweeps. 0 is the plain stratified fill's chances."""
+    the trade bench/results/frontier.md sweeps. 0 gives every point the same chance, as `stratified` does;
+    the hole radius and each tile's hole count are the default's at any value (measured at strength 1)."""
 
     detail: float = 1.0
 

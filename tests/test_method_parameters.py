@@ -132,3 +132,19 @@ def test_batch_param_flags_reach_every_job_and_a_changed_one_reruns(tmp_path):
     assert "1 done, 0 already done" in said[2]  # the work folder's and manifest's key read the parameters
     assert read_provenance(laspy.open(out / "a.simplified.las").header)["settings"]["method_parameters"] == {
         "slack": 0.1}
+
+
+def test_detail_reaches_the_budgets_and_the_tiles(tmp_path):
+    """`detail` reaches every tile of a run and its budgets: 0 and 2 each keep other points than the default
+    (several tiles, so the budgets matter), and the output records the parameter."""
+    scan = tmp_path / "scan.las"
+    write_patch(scan, 26917, 1.0, n=30_000)
+    settings = dict(ratio=0.1, tile_size=20.0, merge_tile_points=0, workers=1)
+    for name, parameters in (("default", {}), ("none", {"detail": 0.0}), ("strong", {"detail": 2.0})):
+        pipeline.run(scan, tmp_path / f"{name}.las", method="learned", method_parameters=parameters, **settings)
+    default, none, strong = (laspy.read(tmp_path / f"{name}.las") for name in ("default", "none", "strong"))
+    assert len(default.points) == len(none.points) == len(strong.points) == 3_000
+    for other in (none, strong):
+        assert not np.array_equal(np.sort(other.X), np.sort(default.X))
+    assert read_provenance(strong.header)["settings"]["method_parameters"] == {"detail": 2.0}
+    assert "method_parameters" not in read_provenance(default.header)["settings"]
