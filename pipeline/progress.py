@@ -92,7 +92,7 @@ class Phase:
         """Count finished steps and the points they handled."""
         self.done += steps
         self.points += points
-        if self.progress.mode == "bar":
+        if self.bar is not None:
             elapsed = time.perf_counter() - self.started
             if self.points and elapsed > 0:
                 self.bar.set_postfix_str(f"{self.points / elapsed:,.0f} points/s")
