@@ -63,21 +63,21 @@ def farthest_core_picks(tile: Tile, budget: int) -> Selection:
     wanted = budget * n / len(core) * (FPS_OVERSHOOT if n > len(core) else 1.0)  # FPS's order is the same for any count
     while True:
         samples = min(n, int(np.ceil(wanted)) + 1)
-        order = _first_occurrences(_fps_order(points, samples, start))
+        order = first_occurrences(fps_order(points, samples, start))
         picks = order[tile.core[order]]
         if len(picks) >= budget or samples == n:
             return Selection.of(tile, topped_up(picks, core, budget, rng))
         wanted = samples * 1.5 * budget / max(len(picks), 1)
 
 
-def _first_occurrences(order: np.ndarray) -> np.ndarray:
+def first_occurrences(order: np.ndarray) -> np.ndarray:
     """Each index once, where it first comes: fpsample repeats indices once every point left coincides
     with a picked one (exact duplicates, all at distance 0)."""
     _, first = np.unique(order, return_index=True)
     return order[np.sort(first)]
 
 
-def _fps_order(points: np.ndarray, samples: int, start: int) -> np.ndarray:
+def fps_order(points: np.ndarray, samples: int, start: int) -> np.ndarray:
     """Indices of `samples` points in farthest-point order from `start` (all points, in FPS order, if samples == n)."""
     if samples <= 1:
         return np.array([start], dtype=np.int64)

@@ -24,6 +24,7 @@ from typing import Callable, Iterable
 import numpy as np
 from pykdtree.kdtree import KDTree
 
+from model.baselines import first_occurrences, fps_order
 from model.geometry import FRAME_POINTS, local_features, nearest_member
 from model.rules import distinct_of_sorted, interleaved, radical_inverse_order
 from model.selection import FillLoss, Selection, Tile, topped_up
@@ -85,8 +86,10 @@ def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget:
     cover's own size: the fill gives up `holes` picks (a first guess, from a fill of the whole budget),
     and gives up more while the cover of what it leaves needs more (a smaller fill leaves more holes).
     Each retry gives up the shortfall twice over (the holes grow about as fast again as the fill shrinks),
-    so one retry nearly always settles; picks the cover leaves unused are topped up by the caller. The
-    cover is cut only when covering alone would exceed the budget."""
+    so one retry nearly always settles; picks the cover leaves unused are topped up by the caller. If the
+    rounds run out unsettled (a budget at about the tile's cover count: its floor), the budget is spent
+    on farthest point sampling alone, which covers the tile once the budget reaches its cover count
+    (model.cover); the cover is cut only when covering alone would exceed the budget."""
     for _ in range(MAX_COVER_ROUNDS):
         fill = fill_of(budget - holes)
         rest = tile.core.copy()
@@ -95,6 +98,10 @@ def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget:
         if len(cover) <= holes or holes == budget:
             break
         holes = min(2 * len(cover) - holes, budget)
+    else:  # farthest point sampling from the first core point, as a run's survey counted the tile's cover
+        core = np.flatnonzero(tile.core)
+        fill = np.empty(0, dtype=np.int64)
+        cover = core[first_occurrences(fps_order(np.ascontiguousarray(tile.xyz[core], dtype=np.float32), budget, 0))]
     return fill, cover[:budget - len(fill)]
 
 

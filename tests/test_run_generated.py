@@ -274,7 +274,10 @@ def test_zarr_output_replaced_only_with_overwrite(tmp_path, dense_patch):
 def test_budgets_follow_detail_across_tiles(tmp_path, method):
     """A flat 12 m x 4 m floor beside an equally dense 4 m x 4 m bumpy patch (each its own 4 m tiles): the
     stratified detail methods weigh tile against tile as one pass would, so the bumpy tile keeps more than
-    its share of the count and the flat tiles less, while the total stays exact and no flat tile is empty."""
+    its share of the count and the flat tiles less, while the total stays exact and the flat tiles keep the
+    picks that cover them (their floor): no flat point farther than 1.5 even spacings (0.1 m) from a kept one.
+    (Their floors were a point per voxel of the hole radius, about twice that cover: the flat tiles kept 60 %
+    of their share, and now 49-52 %, with the same largest gap, 0.129 m.)"""
     rng = np.random.default_rng(5)
     xy = rng.uniform([0, 0], [16, 4], size=(64_000, 2))
     bumpy = xy[:, 0] >= 12
@@ -286,11 +289,13 @@ def test_budgets_follow_detail_across_tiles(tmp_path, method):
     las.write(tmp_path / "floor.las")
     report = pipeline.run(tmp_path / "floor.las", tmp_path / "out.las", ratio=0.1, method=method, tile_size=4.0,
                           workers=1)
-    kept_x = laspy.read(tmp_path / "out.las").x - 500_000
+    out = laspy.read(tmp_path / "out.las")
+    kept_x = out.x - 500_000
     assert report.output_points == 6_400
     share = (kept_x >= 12).mean()  # the bumpy patch holds a quarter of the points
     assert share > 0.3, share
-    assert min(((kept_x >= lo) & (kept_x < lo + 4)).sum() for lo in (0, 4, 8)) > 0.5 * 1_600
+    kept = np.column_stack([kept_x, out.y - 4_000_000, out.z])
+    assert cKDTree(kept).query(np.column_stack([xy, z])[~bumpy])[0].max() < 0.15
 
 
 def test_two_sites_far_apart_run_in_tiles_within_the_budget(tmp_path):

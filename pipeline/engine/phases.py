@@ -27,8 +27,8 @@ from pipeline.io.writers import write_output
 from pipeline.progress import Progress, counted
 from tiling.assemble import level_parts, seam_rejections
 from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
-from tiling.budgets import (coverage_weights, even_spacing, grouped_budgets, hole_voxels, nested_budgets,
-                            pooled_median, saliency_weights, voxels_at)
+from tiling.budgets import (cover_floors, coverage_weights, even_spacing, grouped_budgets, hole_voxels,
+                            nested_budgets, pooled_median, saliency_weights)
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice
 
@@ -120,7 +120,7 @@ def survey_scan(client: Client | Executor, plan: TilePlan, slices: list[list[Sli
     sizes = tuple(float(s) for s in spacing * COVERAGE_LEVELS)
     overlap, cache_bytes, rule = seen_overlap(config), chunk_cache_bytes(config), ClassRule.of(config)
     jobs = [SurveyJob(str(work.store_path), str(work.survey_path(tile_id)), tile_id, tuple(slices[tile_id]),
-                      overlap, cache_bytes, sizes, config.simplifier, config.ratio, config.seed, rule)
+                      overlap, cache_bytes, sizes, spacing, config.simplifier, config.ratio, config.seed, rule)
             for tile_id in range(len(plan.tiles))]
     pending = [job for job in jobs if not Path(job.survey_path).is_file()]
     fresh = dict(zip((job.tile_id for job in pending),
@@ -166,12 +166,13 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
         voxels = [VoxelCounts(sizes, survey.occupied) for survey in surveys]
         if isinstance(simplifier, Fill):
             # saliency shared as one pass would: one fill rate for every tile, plus a point for each hole its
-            # trial fill left, and at least a point in every voxel of the hole radius, so a sparse tile can
+            # trial fill left, and at least the picks that cover it at the hole radius, so a sparse tile can
             # cover all its holes
             weights, fill = scan_fill(surveys, occupied, sizes, target, simplifier.cover_spacings,
                                       simplifier.loss_strength())
             holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes, fill.cover_radius)
-            floors = np.ceil(voxels_at(occupied, sizes, fill.cover_radius)).astype(np.int64)
+            floors = cover_floors(np.array([survey.covers for survey in surveys]), occupied, sizes,
+                                  np.array([survey.picks for survey in surveys]), fill.cover_radius)
         else:  # spaced evenly: tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
     budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights, extra=holes)

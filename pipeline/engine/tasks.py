@@ -14,6 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from model.cover import cover_counts
 from model.methods import Fill, Method
 from model.rules import column_mean, column_min, grid_xyz, kept_count, take_records
 from model.selection import FillContext, FillLoss, Selection, Tile, VoxelCounts
@@ -21,7 +22,7 @@ from model.stratified import pick_spacings, trial_fill
 from pipeline.engine.classes import ClassRule, class_histogram
 from pipeline.engine.workdir import BucketedPiece, WorkDir, save_npz, write_atomically
 from tiling.bucket import SubCellIndex, bucket_by_cell, bucket_by_sub_cell
-from tiling.budgets import occupied_voxels
+from tiling.budgets import occupied_voxels, radius_grid
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, StoredPoints, TileStore
 
@@ -155,7 +156,8 @@ def sort_crowded(slices: tuple[Slice, ...], store_path: str, grid: DensityGrid, 
 @dataclass(frozen=True)
 class SurveyJob:
     """One tile to survey before budgets are set: its occupied voxels at each of `sizes` (scan units),
-    and for a stratified method its fill loss (saved to survey_path) and pick spacing."""
+    and for a stratified method its fill loss (saved to survey_path), pick spacing and cover counts (down to
+    the radius `spacing` at least: the scan's 2-D even spacing, which the hole radius has not been below)."""
 
     store_path: str
     survey_path: str
@@ -164,6 +166,7 @@ class SurveyJob:
     overlap: float
     cache_bytes: int
     sizes: tuple[float, ...]
+    spacing: float
     simplifier: Method
     ratio: float
     seed: int
@@ -173,8 +176,10 @@ class SurveyJob:
 @dataclass(frozen=True)
 class TileSurvey:
     """What a tile tells the run: occupied voxels (levels,), its core count, mean absolute fill loss,
-    the relative loss summed over the core, (quantiles,) spacings of a trial fill's picks, of `picks`, and
-    the voxels (levels,) those picks occupy, on the core's grids (zeros for a method with no fill)."""
+    the relative loss summed over the core, (quantiles,) spacings of a trial fill's picks, of `picks`, the
+    voxels (levels,) those picks occupy, on the core's grids (zeros for a method with no fill), and the
+    picks that cover the core at each radius of tiling.budgets.radius_grid(sizes) (-1: more than `picks`;
+    empty for a method with no fill)."""
 
     occupied: np.ndarray
     core_count: int
@@ -183,6 +188,7 @@ class TileSurvey:
     spacings: np.ndarray
     picks: int
     filled: np.ndarray
+    covers: np.ndarray
 
 
 def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
@@ -193,16 +199,18 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     occupied = occupied_voxels(core_xyz, sizes)
     budget = kept_count(job.ratio, tile.core_count)
     loss, spacings, filled = FillLoss(None, 0.0), np.empty(0), np.zeros_like(occupied)
+    covers = (cover_counts(core_xyz, budget, radius_grid(sizes), job.spacing) if isinstance(job.simplifier, Fill)
+              else np.empty(0, dtype=np.int64))
     if isinstance(job.simplifier, Fill) and budget > 0:
         loss = job.simplifier.fill_loss(tile, budget)
         picks = tile.xyz[trial_fill(tile, budget, loss)]
         spacings, filled = pick_spacings(picks), occupied_voxels(picks, sizes, origin=column_min(core_xyz))
     loss_sum = float(loss.relative[tile.core].sum()) if loss.relative is not None else 0.0
-    survey = TileSurvey(occupied, tile.core_count, loss.level, loss_sum, spacings, budget, filled)
+    survey = TileSurvey(occupied, tile.core_count, loss.level, loss_sum, spacings, budget, filled, covers)
     arrays = {} if loss.relative is None else {"relative": loss.relative.astype(np.float32)}
     write_atomically(Path(job.survey_path), lambda tmp: save_npz(
         tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
-        spacings=spacings, picks=budget, filled=filled, **arrays))
+        spacings=spacings, picks=budget, filled=filled, covers=covers, **arrays))
     return survey
 
 
@@ -210,7 +218,7 @@ def load_survey(path: Path) -> TileSurvey:
     """A finished survey's summary (the per-point loss stays on disk)."""
     with np.load(path) as saved:
         return TileSurvey(saved["occupied"], int(saved["core_count"]), float(saved["level"]), float(saved["loss_sum"]),
-                          saved["spacings"], int(saved["picks"]), saved["filled"])
+                          saved["spacings"], int(saved["picks"]), saved["filled"], saved["covers"])
 
 
 def load_fill_loss(path: Path) -> FillLoss:

@@ -1,0 +1,95 @@
+"""Cover counts: how many farthest-point picks leave no point beyond a radius (a run's tile floors)."""
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from model import Tile, get_simplifier
+from model.baselines import fps_order
+from model.cover import cover_counts, insertion_radii
+from model.selection import FillContext, FillLoss
+from tiling.budgets import count_at, cover_floors, occupied_voxels, radius_grid, voxels_at
+
+
+def plane_with_strays(seed: int = 0) -> np.ndarray:
+    """(23,000, 3): a 40 m noisy plane and stray returns 1-9 m above it (a 2-D and a 3-D part)."""
+    rng = np.random.default_rng(seed)
+    plane = np.column_stack([rng.uniform(0, 40, size=(20_000, 2)), rng.normal(0, 0.01, 20_000)])
+    strays = np.column_stack([rng.uniform(0, 40, size=(3_000, 2)), rng.uniform(1, 9, 3_000)])
+    return np.concatenate([plane, strays])
+
+
+def largest_gap(xyz: np.ndarray, picks: np.ndarray) -> float:
+    return float(cKDTree(xyz[picks]).query(xyz)[0].max())
+
+
+def test_insertion_radii_are_each_picks_distance_to_the_picks_before_it():
+    xyz = plane_with_strays()
+    gaps = insertion_radii(xyz, 1_500, 0)
+    picks = xyz[fps_order(xyz.astype(np.float32), 1_500, 0)]
+    brute = [np.inf] + [float(np.sqrt(((picks[:k] - picks[k]) ** 2).sum(axis=1)).min()) for k in range(1, 1_500)]
+    np.testing.assert_allclose(gaps, brute)
+
+
+def test_a_cover_count_of_picks_leaves_no_point_beyond_the_radius_and_one_fewer_does():
+    xyz = plane_with_strays(1)
+    radii = np.array([0.8, 1.2, 2.0, 4.0])
+    counts = cover_counts(xyz, 2_000, radii, finest=0.8)
+    order = fps_order(xyz.astype(np.float32), int(counts.max()), 0)
+    assert np.all(np.diff(counts) < 0)
+    for radius, count in zip(radii, counts):
+        assert largest_gap(xyz, order[:count]) <= radius < largest_gap(xyz, order[:count - 1])
+
+
+def test_a_cover_needs_about_half_the_voxels_of_its_radius_on_a_surface():
+    """The floors this replaces: one point per voxel of edge r, about twice what a cover at r needs."""
+    xyz = plane_with_strays(2)[:20_000]  # the plane alone
+    sizes = 0.5 * 2.0 ** np.arange(5)
+    counts = count_at(cover_counts(xyz, 2_000, radius_grid(sizes), finest=1.0)[None], radius_grid(sizes), 1.0)[0]
+    voxels = voxels_at(occupied_voxels(xyz, sizes)[None], sizes, 1.0)[0]
+    assert 0.3 * voxels < counts < 0.7 * voxels
+
+
+def test_counts_are_sampled_on_until_the_finest_radius_and_unknown_below_it():
+    """A sparse tile needs more than its share at the scan's radius: its first picks (10 here) are not enough,
+    so it samples on until they cover at `finest`; finer radii than the picks reached stay unknown (-1)."""
+    xyz = plane_with_strays(3)
+    radii = np.array([0.05, 1.0, 3.0])
+    counts = cover_counts(xyz, 10, radii, finest=1.0)
+    assert counts[0] == -1 and counts[1] > 10 and 0 < counts[2] < counts[1]
+    np.testing.assert_array_equal(counts[1:], cover_counts(xyz, 5_000, radii, finest=1.0)[1:])
+    assert np.all(cover_counts(xyz[:50], 10, radii, finest=0.01) >= 1)  # all sampled: every radius known
+    np.testing.assert_array_equal(cover_counts(xyz, 1, radii, finest=1.0)[1:], counts[1:])  # one pick: no gap yet
+
+
+def test_count_at_reads_the_grid_radius_just_below_and_unknown_below_the_grid():
+    radii = radius_grid(np.array([1.0, 2.0]))
+    counts = np.arange(len(radii))[::-1][None] + 5
+    assert len(radii) == 17 and radii[-1] == 2.0
+    assert count_at(counts, radii, radii[3] * 1.01)[0] == counts[0, 3]
+    assert count_at(counts, radii, radii[3])[0] == counts[0, 3]
+    assert count_at(counts, radii, 0.99)[0] == -1
+
+
+def test_floors_are_the_cover_counts_and_voxels_past_its_share_where_unknown():
+    sizes = np.array([1.0, 2.0])
+    radii = radius_grid(sizes)
+    covers = np.vstack([np.full(len(radii), 40), np.full(len(radii), -1)])
+    occupied = np.array([[400, 100], [30, 10]])
+    floors = cover_floors(covers, occupied, sizes, np.array([50, 70]), 1.0)
+    assert floors[0] == 40 and floors[1] == 71  # 30 voxels, but more than the 70 picks sampled
+
+
+def test_a_budget_at_the_cover_count_still_covers_the_tile():
+    """A tile at its floor gets just the picks a cover needs: the fill-and-cover rounds cannot settle there
+    (each smaller fill leaves more holes), so the budget goes to farthest point sampling alone, which is
+    what the count counted. Before, the rounds ran out and the cover was cut: points left past the radius."""
+    xyz = plane_with_strays(4)
+    xyz -= xyz.mean(axis=0)
+    core = np.ones(len(xyz), dtype=bool)
+    radius = 1.5
+    budget = int(cover_counts(xyz, 1_000, np.array([radius]), radius)[0])
+    context = FillContext(FillLoss(None, 0.0), 0.0, radius, kept=budget)
+    picks = get_simplifier("stratified")(Tile(xyz, core, np.zeros(3), 1, context), budget).indices
+    assert len(np.unique(picks)) == budget
+    assert largest_gap(xyz, picks) <= radius * (1 + 1e-6)  # farthest point sampling on float32 coordinates
