@@ -15,7 +15,7 @@ from pykdtree.kdtree import KDTree
 
 from model.baselines import fps_order
 
-EARLIER_NEIGHBOURS = 16  # nearest picks searched for a pick's nearest earlier one
+EARLIER_NEIGHBOURS = 8  # nearest picks of its own block searched for a pick's nearest earlier one (16: the same radii, 12 % slower)
 
 
 def insertion_radii(points: np.ndarray, count: int, start: int) -> np.ndarray:
@@ -40,20 +40,21 @@ def insertion_radii(points: np.ndarray, count: int, start: int) -> np.ndarray:
     return gaps
 
 
-def cover_counts(points: np.ndarray, count: int, radii: np.ndarray, finest: float, start: int = 0) -> np.ndarray:
+def cover_counts(points: np.ndarray, count: int, radii: np.ndarray, finest: float | None = None,
+                 start: int = 0) -> np.ndarray:
     """(g,) for each of `radii` (g,) the number of farthest-point picks from `start` that leave no point of
     `points` (n, 3) farther than it (a greedy cover: 1.7-2.1x fewer picks than voxels of that edge), or -1
-    where that is unknown. The first `count` picks are sampled, and more (as many again as a surface would
-    need, the sampling redone) until they cover at `finest` or every point is sampled: a sparse tile
-    needs more than its share of the count at a scan's radius."""
+    where the first `count` picks, all that is sampled, are too few. With `finest`, more are sampled (as
+    many again as a surface would need, the sampling redone) until they cover at `finest` or every point
+    is sampled: a tile sparse for a run's hole radius needs more than its share of the count there."""
     if len(points) == 0:
         return np.zeros(len(radii), dtype=np.int64)
-    if count <= 0:
+    if count <= 0 and finest is None:
         return np.full(len(radii), -1, dtype=np.int64)
-    sampled = min(count, len(points))
+    sampled = min(max(count, 1), len(points))
     while True:
         shrinking = np.minimum.accumulate(insertion_radii(points, sampled, start))  # the true radii only shrink
-        if sampled == len(points) or shrinking[-1] <= finest or not finest > 0:
+        if finest is None or sampled == len(points) or shrinking[-1] <= finest or not finest > 0:
             break
         growth = (shrinking[-1] / finest) ** 2 if np.isfinite(shrinking[-1]) else 4.0  # one pick: no gap yet
         sampled = min(len(points), max(sampled + 1, int(np.ceil(1.25 * sampled * growth))))

@@ -8,7 +8,7 @@ from model import Tile, get_simplifier
 from model.baselines import fps_order
 from model.cover import cover_counts, insertion_radii
 from model.selection import FillContext, FillLoss
-from tiling.budgets import count_at, cover_floors, occupied_voxels, radius_grid, voxels_at
+from tiling.budgets import count_at, occupied_voxels, radius_grid, voxels_at
 
 
 def plane_with_strays(seed: int = 0) -> np.ndarray:
@@ -59,6 +59,7 @@ def test_counts_are_sampled_on_until_the_finest_radius_and_unknown_below_it():
     assert counts[0] == -1 and counts[1] > 10 and 0 < counts[2] < counts[1]
     np.testing.assert_array_equal(counts[1:], cover_counts(xyz, 5_000, radii, finest=1.0)[1:])
     assert np.all(cover_counts(xyz[:50], 10, radii, finest=0.01) >= 1)  # all sampled: every radius known
+    assert cover_counts(xyz, 10, radii)[1] == -1  # no finest: the first picks alone
     np.testing.assert_array_equal(cover_counts(xyz, 1, radii, finest=1.0)[1:], counts[1:])  # one pick: no gap yet
 
 
@@ -69,15 +70,6 @@ def test_count_at_reads_the_grid_radius_just_below_and_unknown_below_the_grid():
     assert count_at(counts, radii, radii[3] * 1.01)[0] == counts[0, 3]
     assert count_at(counts, radii, radii[3])[0] == counts[0, 3]
     assert count_at(counts, radii, 0.99)[0] == -1
-
-
-def test_floors_are_the_cover_counts_and_voxels_past_its_share_where_unknown():
-    sizes = np.array([1.0, 2.0])
-    radii = radius_grid(sizes)
-    covers = np.vstack([np.full(len(radii), 40), np.full(len(radii), -1)])
-    occupied = np.array([[400, 100], [30, 10]])
-    floors = cover_floors(covers, occupied, sizes, np.array([50, 70]), 1.0)
-    assert floors[0] == 40 and floors[1] == 71  # 30 voxels, but more than the 70 picks sampled
 
 
 def test_a_budget_at_the_cover_count_still_covers_the_tile():

@@ -270,6 +270,23 @@ def test_zarr_output_replaced_only_with_overwrite(tmp_path, dense_patch):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["o.zarr"]  # no temporary or scratch left behind
 
 
+def test_a_tile_sparse_for_the_radius_keeps_the_cover_it_needs(tmp_path):
+    """Two 8 m tiles, the right one 50x sparser: its share of the count (80 of 4,080) cannot cover it at the
+    run's hole radius, so its survey's picks fall short and a task of its own counts its cover there; its
+    floor is that count, and its largest gap is the dense tile's, the radius (it keeps 520 of its 800)."""
+    rng = np.random.default_rng(7)
+    xy = np.concatenate([rng.uniform([0, 0], [8, 8], size=(40_000, 2)), rng.uniform([8, 0], [16, 8], size=(800, 2))])
+    scan = write_flat_scene(tmp_path / "two.las", xy, 0.01, rng)
+    report = pipeline.run(tmp_path / "two.las", tmp_path / "out.las", ratio=0.1, method="stratified", tile_size=8.0,
+                          merge_tile_points=0, workers=1)
+    out = laspy.read(tmp_path / "out.las")
+    gap = cKDTree(np.column_stack([out.x, out.y, out.z])).query(np.column_stack([scan.x, scan.y, scan.z]))[0]
+    right = xy[:, 0] >= 8
+    assert report.output_points == 4_080
+    assert (out.x - 500_000 >= 8).sum() > 5 * 80
+    assert gap[right].max() <= 1.05 * gap[~right].max()
+
+
 @pytest.mark.parametrize("method", ["stratified-detail", "learned"])
 def test_budgets_follow_detail_across_tiles(tmp_path, method):
     """A flat 12 m x 4 m floor beside an equally dense 4 m x 4 m bumpy patch (each its own 4 m tiles): the

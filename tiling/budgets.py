@@ -173,17 +173,6 @@ def count_at(counts: np.ndarray, radii: np.ndarray, radius: float) -> np.ndarray
     return np.asarray(counts)[:, at].astype(np.int64)
 
 
-def cover_floors(covers: np.ndarray, occupied: np.ndarray, sizes: np.ndarray, sampled: np.ndarray,
-                 radius: float) -> np.ndarray:
-    """(tiles,) the fewest picks that leave no core point of each tile farther than `radius` from one: its
-    survey's cover count (covers: (tiles, g) model.cover.cover_counts at radius_grid(sizes)); where that
-    fell short (more than the `sampled` (tiles,) picks it counted), one point per voxel of edge `radius`
-    (occupied: (tiles, levels) at `sizes`), and more than it sampled: about twice what a cover needs."""
-    counted = count_at(covers, radius_grid(sizes), radius)
-    voxels = np.ceil(voxels_at(occupied, sizes, radius)).astype(np.int64)
-    return np.where(counted >= 0, counted, np.maximum(voxels, np.asarray(sampled, dtype=np.int64) + 1))
-
-
 DISC_EDGE = float(np.sqrt(np.pi))  # a hole's cover point serves the points within the cover radius r of it: on a
 # surface a disc of area pi r^2, the area of a square of edge sqrt(pi) r. Counted at edge r, the holes came out 5.8x
 # the covers' picks on lone-star at 0.1 (9 tiles), at sqrt(pi) r 1.2x

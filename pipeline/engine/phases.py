@@ -17,7 +17,8 @@ from model.selection import VoxelCounts
 from pipeline.config import RunConfig, parse_size
 from pipeline.engine.classes import ClassRule
 from pipeline.engine.execute import map_tasks
-from pipeline.engine.tasks import SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, sort_crowded, survey_tile
+from pipeline.engine.tasks import (CoverJob, SurveyJob, TileJob, TileSurvey, bucket_piece, count_cover, load_survey,
+                                   sort_crowded, survey_tile)
 from pipeline.engine.workdir import BucketedPiece, WorkDir
 from pipeline.errors import PipelineError
 from pipeline.io.crs import crs_wkt
@@ -27,8 +28,8 @@ from pipeline.io.writers import write_output
 from pipeline.progress import Progress, counted
 from tiling.assemble import level_parts, seam_rejections
 from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
-from tiling.budgets import (cover_floors, coverage_weights, even_spacing, grouped_budgets, hole_voxels,
-                            nested_budgets, pooled_median, saliency_weights)
+from tiling.budgets import (count_at, coverage_weights, even_spacing, grouped_budgets, hole_voxels, nested_budgets,
+                            pooled_median, radius_grid, saliency_weights)
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice
 
@@ -120,7 +121,7 @@ def survey_scan(client: Client | Executor, plan: TilePlan, slices: list[list[Sli
     sizes = tuple(float(s) for s in spacing * COVERAGE_LEVELS)
     overlap, cache_bytes, rule = seen_overlap(config), chunk_cache_bytes(config), ClassRule.of(config)
     jobs = [SurveyJob(str(work.store_path), str(work.survey_path(tile_id)), tile_id, tuple(slices[tile_id]),
-                      overlap, cache_bytes, sizes, spacing, config.simplifier, config.ratio, config.seed, rule)
+                      overlap, cache_bytes, sizes, config.simplifier, config.ratio, config.seed, rule)
             for tile_id in range(len(plan.tiles))]
     pending = [job for job in jobs if not Path(job.survey_path).is_file()]
     fresh = dict(zip((job.tile_id for job in pending),
@@ -171,12 +172,27 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
             weights, fill = scan_fill(surveys, occupied, sizes, target, simplifier.cover_spacings,
                                       simplifier.loss_strength())
             holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes, fill.cover_radius)
-            floors = cover_floors(np.array([survey.covers for survey in surveys]), occupied, sizes,
-                                  np.array([survey.picks for survey in surveys]), fill.cover_radius)
+            floors = cover_floors(client, plan, slices, surveys, sizes, fill.cover_radius, work, config, progress)
         else:  # spaced evenly: tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
     budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights, extra=holes)
     return budgets, fill, voxels
+
+
+def cover_floors(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], surveys: list[TileSurvey],
+                 sizes: np.ndarray, radius: float, work: WorkDir, config: RunConfig, progress: Progress) -> np.ndarray:
+    """(tiles,) the fewest picks that leave no core point of each tile farther than `radius` from one: its
+    survey's count (at the grid radius just below), or, where the survey's picks fell short (a tile sparse
+    for this radius), a count of the tile's own at the radius (a task that loads its core)."""
+    floors = count_at(np.array([survey.covers for survey in surveys]), radius_grid(sizes), radius)
+    short = np.flatnonzero(floors < 0)
+    if len(short):
+        cache_bytes, rule = chunk_cache_bytes(config), ClassRule.of(config)
+        jobs = [CoverJob(str(work.store_path), int(tile_id), tuple(slices[tile_id]), cache_bytes,
+                         surveys[tile_id].picks, radius, config.seed, rule) for tile_id in short]
+        floors[short] = map_tasks(client, count_cover, jobs, plan, desc="count covers", progress=progress,
+                                  cost=core_points(plan))
+    return floors
 
 
 def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray, whole: np.ndarray,
@@ -221,7 +237,7 @@ def stitch_outputs(scan: Scan, outputs: list[Path], plan: TilePlan, results: dic
     return written
 
 
-def core_points(plan: TilePlan) -> Callable[[TileJob | SurveyJob], int]:
+def core_points(plan: TilePlan) -> Callable[[TileJob | SurveyJob | CoverJob], int]:
     """A tile task's expected work for map_tasks' submission order: its tile's core points."""
     return lambda job: plan.tiles[job.tile_id].count
 

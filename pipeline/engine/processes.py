@@ -37,7 +37,7 @@ from typing import Any, Callable
 from threadpoolctl import threadpool_limits
 
 from pipeline.engine.allocator import map_large_arrays
-from pipeline.engine.tasks import simplify_tile, survey_tile
+from pipeline.engine.tasks import count_cover, simplify_tile, survey_tile
 
 PROCESS_TILE_POINTS = 1_000_000  # scans from this size give their tile work to worker processes
 SERVER_PRELOAD = "pipeline.engine.tile_server"  # the forkserver imports the tasks once
@@ -121,12 +121,12 @@ def die_with_parent() -> None:
 
 
 class TilesElsewhere(Executor):
-    """An in-process run's executor: its task threads, but each tile's survey and picks (`tile_work`:
-    survey_tile, simplify_tile) in `workers` worker processes, which `restart` replaces when one has died.
+    """An in-process run's executor: its task threads, but each tile's survey, cover count and picks
+    (`tile_work`: survey_tile, count_cover, simplify_tile) in `workers` worker processes, which `restart` replaces when one has died.
     Shutting it down waits for both, cancelling what has not started."""
 
     def __init__(self, threads: Executor, workers: int,
-                 tile_work: tuple[Callable[..., Any], ...] = (survey_tile, simplify_tile)) -> None:
+                 tile_work: tuple[Callable[..., Any], ...] = (survey_tile, count_cover, simplify_tile)) -> None:
         self.threads = threads
         self.workers = workers
         self.tile_work = tile_work

@@ -156,8 +156,7 @@ def sort_crowded(slices: tuple[Slice, ...], store_path: str, grid: DensityGrid, 
 @dataclass(frozen=True)
 class SurveyJob:
     """One tile to survey before budgets are set: its occupied voxels at each of `sizes` (scan units),
-    and for a stratified method its fill loss (saved to survey_path), pick spacing and cover counts (down to
-    the radius `spacing` at least: the scan's 2-D even spacing, which the hole radius has not been below)."""
+    and for a stratified method its fill loss (saved to survey_path), pick spacing and cover counts."""
 
     store_path: str
     survey_path: str
@@ -166,7 +165,6 @@ class SurveyJob:
     overlap: float
     cache_bytes: int
     sizes: tuple[float, ...]
-    spacing: float
     simplifier: Method
     ratio: float
     seed: int
@@ -199,7 +197,7 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     occupied = occupied_voxels(core_xyz, sizes)
     budget = kept_count(job.ratio, tile.core_count)
     loss, spacings, filled = FillLoss(None, 0.0), np.empty(0), np.zeros_like(occupied)
-    covers = (cover_counts(core_xyz, budget, radius_grid(sizes), job.spacing) if isinstance(job.simplifier, Fill)
+    covers = (cover_counts(core_xyz, budget, radius_grid(sizes)) if isinstance(job.simplifier, Fill)
               else np.empty(0, dtype=np.int64))
     if isinstance(job.simplifier, Fill) and budget > 0:
         loss = job.simplifier.fill_loss(tile, budget)
@@ -212,6 +210,30 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
         tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
         spacings=spacings, picks=budget, filled=filled, covers=covers, **arrays))
     return survey
+
+
+@dataclass(frozen=True)
+class CoverJob:
+    """A tile whose survey's picks (its share of the count) fell short of covering its core at the run's
+    hole radius: how many it needs there."""
+
+    store_path: str
+    tile_id: int
+    slices: tuple[Slice, ...]
+    cache_bytes: int
+    picks: int
+    radius: float
+    seed: int
+    rule: ClassRule = ClassRule()
+
+
+def count_cover(job: CoverJob, plan: TilePlan) -> int:
+    """The farthest-point picks that bring every core point of the tile within the radius, from the point the
+    survey and the tile's own farthest point sampling start at (its core is loaded alone: the same points,
+    in the same order)."""
+    tile, _, _ = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, 0.0, job.seed, job.rule)
+    core_xyz = tile.xyz if tile.core.all() else tile.xyz[tile.core]
+    return int(cover_counts(core_xyz, job.picks, np.array([job.radius]), finest=job.radius)[0])
 
 
 def load_survey(path: Path) -> TileSurvey:
