@@ -74,8 +74,11 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf,
     trial = weighted_picks(curve, curve_weights, planned, phase)
     radius = context.cover_radius if context is not None else cover_spacings * typical_spacing(
         tile.xyz[trial if strength == 1.0 else trial_fill(tile, planned, loss, phase)])
-    fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase), planned,
-                                     radius, len(hole_cover(tile.xyz, trial, core, radius, curve)))
+    if context is not None and planned <= context.cover_count:  # at its floor: no fill fits beside the cover
+        fill, cover = np.empty(0, dtype=np.int64), farthest_cover(tile, planned)
+    else:
+        fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase),
+                                         planned, radius, len(hole_cover(tile.xyz, trial, core, radius, curve)))
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
     return Selection.of(tile, topped_up(order, core, budget, rng))
 
@@ -98,11 +101,17 @@ def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget:
         if len(cover) <= holes or holes == budget:
             break
         holes = min(2 * len(cover) - holes, budget)
-    else:  # farthest point sampling from the first core point, as a run's survey counted the tile's cover
-        core = np.flatnonzero(tile.core)
-        fill = np.empty(0, dtype=np.int64)
-        cover = core[first_occurrences(fps_order(np.ascontiguousarray(tile.xyz[core], dtype=np.float32), budget, 0))]
+    else:
+        fill, cover = np.empty(0, dtype=np.int64), farthest_cover(tile, budget)
     return fill, cover[:budget - len(fill)]
+
+
+def farthest_cover(tile: Tile, budget: int) -> np.ndarray:
+    """`budget` core points by farthest point sampling from the first core point: the picks a run's survey
+    counts a tile's cover with (model.cover), so they cover the core at the hole radius once the budget
+    reaches that count (a budget at the tile's floor)."""
+    core = np.flatnonzero(tile.core)
+    return core[first_occurrences(fps_order(np.ascontiguousarray(tile.xyz[core], dtype=np.float32), budget, 0))]
 
 
 def fill_weights(loss: FillLoss, detail_scale: float) -> np.ndarray | None:

@@ -75,13 +75,16 @@ def test_count_at_reads_the_grid_radius_just_below_and_unknown_below_the_grid():
 def test_a_budget_at_the_cover_count_still_covers_the_tile():
     """A tile at its floor gets just the picks a cover needs: the fill-and-cover rounds cannot settle there
     (each smaller fill leaves more holes), so the budget goes to farthest point sampling alone, which is
-    what the count counted. Before, the rounds ran out and the cover was cut: points left past the radius."""
+    what the count counted; a run tells the tile its count, and it skips the rounds (on the street, five
+    tiles ran all six, each a hole cover). Before, the rounds ran out and the cover was cut: points were
+    left past the radius."""
     xyz = plane_with_strays(4)
     xyz -= xyz.mean(axis=0)
     core = np.ones(len(xyz), dtype=bool)
     radius = 1.5
     budget = int(cover_counts(xyz, 1_000, np.array([radius]), radius)[0])
-    context = FillContext(FillLoss(None, 0.0), 0.0, radius, kept=budget)
-    picks = get_simplifier("stratified")(Tile(xyz, core, np.zeros(3), 1, context), budget).indices
-    assert len(np.unique(picks)) == budget
-    assert largest_gap(xyz, picks) <= radius * (1 + 1e-6)  # farthest point sampling on float32 coordinates
+    for counted in (0, budget):  # the run's count unknown to the tile (the rounds run out), or known: no rounds
+        context = FillContext(FillLoss(None, 0.0), 0.0, radius, kept=budget, cover_count=counted)
+        picks = get_simplifier("stratified")(Tile(xyz, core, np.zeros(3), 1, context), budget).indices
+        assert len(np.unique(picks)) == budget
+        assert largest_gap(xyz, picks) <= radius * (1 + 1e-6)  # farthest point sampling on float32 coordinates

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from concurrent.futures import Executor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from importlib.metadata import version
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
@@ -133,10 +133,12 @@ def survey_scan(client: Client | Executor, plan: TilePlan, slices: list[list[Sli
 
 @dataclass(frozen=True)
 class ScanFill:
-    """The scan-wide settings of a stratified method's tiles: (tiles,) detail scales and the hole radius."""
+    """The scan-wide settings of a stratified method's tiles: (tiles,) detail scales, the hole radius and
+    (tiles,) the picks that cover each tile at it (none before they are counted)."""
 
     detail_scales: np.ndarray
     cover_radius: float
+    cover_counts: np.ndarray | None = None
 
 
 def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray, target: int,
@@ -173,6 +175,7 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
                                       simplifier.loss_strength())
             holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes, fill.cover_radius)
             floors = cover_floors(client, plan, slices, surveys, sizes, fill.cover_radius, work, config, progress)
+            fill = replace(fill, cover_counts=floors)
         else:  # spaced evenly: tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
     budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights, extra=holes)
@@ -209,7 +212,9 @@ def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets:
         reserve = min(tile.count - int(whole[tile_id]) - budget, max(RESERVE_MIN, int(np.ceil(RESERVE_SHARE * budget))))
         surveyed = {} if fill is None else dict(survey_path=str(work.survey_path(tile_id)),
                                                  detail_scale=float(fill.detail_scales[tile_id]),
-                                                 cover_radius=fill.cover_radius)
+                                                 cover_radius=fill.cover_radius,
+                                                 cover_count=0 if fill.cover_counts is None
+                                                 else int(fill.cover_counts[tile_id]))
         jobs.append(TileJob(str(work.store_path), str(work.tile_path(tile_id)), tile_id, tuple(slices[tile_id]),
                             overlap, cache_bytes, budget, reserve, config.simplifier, config.seed, **surveyed,
                             rule=rule, voxels=None if voxels is None else voxels[tile_id]))

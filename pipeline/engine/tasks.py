@@ -47,6 +47,7 @@ class TileJob:
     survey_path: str | None = None  # a stratified method's survey of this tile (its fill loss)
     detail_scale: float = 0.0       # the tile's loss level over the scan's (model.selection.FillContext)
     cover_radius: float = 0.0       # the scan-wide hole radius, scan units
+    cover_count: int = 0            # the picks that cover the tile's core at that radius (its budget's floor)
     rule: ClassRule = ClassRule()   # core points it keeps whole are saved apart and never thinned
     voxels: VoxelCounts | None = None  # what the tile's survey counted (model.selection.Tile.voxels)
 
@@ -90,7 +91,8 @@ def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     tile, records, whole = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap,
                                      job.seed, job.rule)
     context = None if job.survey_path is None else FillContext(load_fill_loss(Path(job.survey_path)), job.detail_scale,
-                                                                job.cover_radius, kept=job.budget)
+                                                                job.cover_radius, kept=job.budget,
+                                                                cover_count=job.cover_count)
     tile = replace(tile, context=context, voxels=job.voxels)
     count = min(job.budget + job.reserve, tile.core_count)
     picked = job.simplifier(tile, count) if count else Selection.of(tile, np.empty(0, np.int64))
