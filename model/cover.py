@@ -19,13 +19,20 @@ EARLIER_NEIGHBOURS = 8  # nearest picks of its own block searched for a pick's n
 # same radii on a bcts tile, 12 % slower)
 
 
-def insertion_radii(points: np.ndarray, count: int, start: int) -> np.ndarray:
-    """(m,) for the first m = min(count, n) picks of farthest point sampling on `points` (n, 3) from
-    `start`: each pick's distance to the picks before it (inf for the first). Worked out in doubling
+def cover_order(points: np.ndarray, count: int) -> np.ndarray:
+    """Indices of the first min(count, n) picks of farthest point sampling on `points` (n, 3) from the first
+    point (fpsample, on float32 coordinates; an index repeats once every point is picked): the picks a
+    tile's cover is counted with, and the ones a tile at its floor keeps (model.stratified)."""
+    return fps_order(np.ascontiguousarray(points, dtype=np.float32), min(count, len(points)), 0)
+
+
+def insertion_radii(points: np.ndarray, count: int) -> np.ndarray:
+    """(m,) for the picks of cover_order(points, count): each pick's distance to the picks before it (inf for
+    the first). Worked out in doubling
     blocks: a pick's nearest among the picks before its block (one tree per block), and among the
     EARLIER_NEIGHBOURS nearest of its own block those before it; where its nearest earlier pick is in its
     block but not among those (rare), the value is an upper bound, which only ever asks for more picks."""
-    picks = fps_order(np.ascontiguousarray(points, dtype=np.float32), min(count, len(points)), start)
+    picks = cover_order(points, count)
     xyz = np.ascontiguousarray(points[picks], dtype=np.float64)
     gaps = np.full(len(picks), np.inf)
     first = 1
@@ -41,9 +48,8 @@ def insertion_radii(points: np.ndarray, count: int, start: int) -> np.ndarray:
     return gaps
 
 
-def cover_counts(points: np.ndarray, count: int, radii: np.ndarray, finest: float | None = None,
-                 start: int = 0) -> np.ndarray:
-    """(g,) for each of `radii` (g,) the number of farthest-point picks from `start` that leave no point of
+def cover_counts(points: np.ndarray, count: int, radii: np.ndarray, finest: float | None = None) -> np.ndarray:
+    """(g,) for each of `radii` (g,) the number of cover_order picks that leave no point of
     `points` (n, 3) farther than it (a greedy cover: 1.7-2.1x fewer picks than voxels of that edge), or -1
     where the first `count` picks, all that is sampled, are too few. With `finest`, more are sampled (as
     many again as a surface would need, the sampling redone) until they cover at `finest` or every point
@@ -54,7 +60,7 @@ def cover_counts(points: np.ndarray, count: int, radii: np.ndarray, finest: floa
         return np.full(len(radii), -1, dtype=np.int64)
     sampled = min(max(count, 1), len(points))
     while True:
-        shrinking = np.minimum.accumulate(insertion_radii(points, sampled, start))  # the true radii only shrink
+        shrinking = np.minimum.accumulate(insertion_radii(points, sampled))  # the true radii only shrink
         if finest is None or sampled == len(points) or shrinking[-1] <= finest or not finest > 0:
             break
         growth = (shrinking[-1] / finest) ** 2 if np.isfinite(shrinking[-1]) else 4.0  # one pick: no gap yet

@@ -24,7 +24,8 @@ from typing import Callable, Iterable
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from model.baselines import first_occurrences, fps_order
+from model.baselines import first_occurrences
+from model.cover import cover_order
 from model.geometry import FRAME_POINTS, local_features, nearest_member
 from model.rules import distinct_of_sorted, interleaved, radical_inverse_order
 from model.selection import FillLoss, Selection, Tile, topped_up
@@ -74,17 +75,15 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf,
     trial = weighted_picks(curve, curve_weights, planned, phase)
     radius = context.cover_radius if context is not None else cover_spacings * typical_spacing(
         tile.xyz[trial if strength == 1.0 else trial_fill(tile, planned, loss, phase)])
-    if context is not None and planned <= context.cover_count:  # at its floor: no fill fits beside the cover
-        fill, cover = np.empty(0, dtype=np.int64), farthest_cover(tile, planned)
-    else:
-        fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase),
-                                         planned, radius, len(hole_cover(tile.xyz, trial, core, radius, curve)))
+    fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase), planned,
+                                     radius, len(hole_cover(tile.xyz, trial, core, radius, curve)),
+                                     0 if context is None else context.cover_count)
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
     return Selection.of(tile, topped_up(order, core, budget, rng))
 
 
 def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget: int, radius: float,
-                       holes: int) -> tuple[np.ndarray, np.ndarray]:
+                       holes: int, cover_count: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """A fill of budget - h core points (`fill_of(count)`) and the cover of the holes it leaves, with h the
     cover's own size: the fill gives up `holes` picks (a first guess, from a fill of the whole budget),
     and gives up more while the cover of what it leaves needs more (a smaller fill leaves more holes).
@@ -92,7 +91,10 @@ def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget:
     so one retry nearly always settles; picks the cover leaves unused are topped up by the caller. If the
     rounds run out unsettled (a budget at about the tile's cover count: its floor), the budget is spent
     on farthest point sampling alone, which covers the tile once the budget reaches its cover count
-    (model.cover); the cover is cut only when covering alone would exceed the budget."""
+    (model.cover); a budget at or under `cover_count` (a run's count of it; 0: unknown) goes there at
+    once, as no fill fits beside the cover; the cover is cut only when covering alone would exceed it."""
+    if budget <= cover_count:
+        return np.empty(0, dtype=np.int64), farthest_cover(tile, budget)
     for _ in range(MAX_COVER_ROUNDS):
         fill = fill_of(budget - holes)
         rest = tile.core.copy()
@@ -107,11 +109,11 @@ def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget:
 
 
 def farthest_cover(tile: Tile, budget: int) -> np.ndarray:
-    """`budget` core points by farthest point sampling from the first core point: the picks a run's survey
-    counts a tile's cover with (model.cover), so they cover the core at the hole radius once the budget
-    reaches that count (a budget at the tile's floor)."""
+    """`budget` distinct core points in model.cover's cover_order: the picks a run's survey counts a tile's
+    cover with, so they cover the core at the hole radius once the budget reaches that count (a budget at
+    the tile's floor)."""
     core = np.flatnonzero(tile.core)
-    return core[first_occurrences(fps_order(np.ascontiguousarray(tile.xyz[core], dtype=np.float32), budget, 0))]
+    return core[first_occurrences(cover_order(tile.xyz[core], budget))]
 
 
 def fill_weights(loss: FillLoss, detail_scale: float) -> np.ndarray | None:
