@@ -9,31 +9,32 @@ and holes, FPS's is that it flattens the density pattern. This method takes each
    sampling along a Morton curve through the tile, so each run of 1/ratio consecutive points on the
    curve keeps one: the density pattern of random sampling without its clumps;
 2. cover: points still farther than `COVER_SPACINGS` typical output spacings from every pick (holes in
-   sparse areas: far ranges, isolated objects, stray returns) are covered by farthest point sampling
-   continued from the fill (largest gap first), and the fill gives up as many picks, so the count
-   stays exact and no hole is left open while the budget can close it.
+   sparse areas: far ranges, isolated objects, stray returns) are covered by a greedy set cover
+   (model.set_cover: each pick the point near a hole that brings the most of its points within the
+   radius), and the fill gives up as many picks, so the count stays exact and no hole is left open
+   while the budget can close it.
 
-Picks come in priority order (fill picks in radical-inverse order along the curve, hole picks in FPS
-order, interleaved by rank), so a prefix is itself a spread-out, coarser result.
+Picks come in priority order (fill picks in radical-inverse order along the curve, hole picks in the
+cover's order, the fullest holes first, interleaved by rank), so a prefix is itself a spread-out,
+coarser result.
 """
 from __future__ import annotations
 
-import heapq
-from typing import Callable, Iterable
+from typing import Callable
 
 import numpy as np
 from pykdtree.kdtree import KDTree
 
 from model.baselines import first_occurrences
 from model.cover import cover_order
-from model.geometry import FRAME_POINTS, local_features, nearest_member
+from model.geometry import local_features, nearest_member
 from model.rules import distinct_of_sorted, interleaved, radical_inverse_order
 from model.selection import FillLoss, Selection, Tile, topped_up
+from model.set_cover import greedy_set_cover
 
 COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
 SPACING_QUANTILES = np.linspace(0.0, 1.0, 65)  # a tile reports its picks' spacing as these quantiles
 MAX_COVER_ROUNDS = 6  # fill-and-cover rounds before the cover is cut to what the fill leaves
-REACH_NEIGHBOURS = 16  # nearest far points tabled per far point for the hole cover (a pick reaches about 4)
 
 
 LossOf = Callable[[Tile, int], FillLoss]
@@ -92,20 +93,22 @@ def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget:
     rounds run out unsettled (a budget at about the tile's cover count: its floor), the budget is spent
     on farthest point sampling alone, which covers the tile once the budget reaches its cover count
     (model.cover); a budget at or under `cover_count` (a run's count of it; 0: unknown) goes there at
-    once, as no fill fits beside the cover; the cover is cut only when covering alone would exceed it."""
+    once, as no fill fits beside the cover, and so does one that covering alone would exceed (the farthest
+    point picks are spread at any count; a cut greedy cover is not)."""
     if budget <= cover_count:
         return np.empty(0, dtype=np.int64), farthest_cover(tile, budget)
+    holes = min(holes, budget)
     for _ in range(MAX_COVER_ROUNDS):
         fill = fill_of(budget - holes)
         rest = tile.core.copy()
         rest[fill] = False
         cover = hole_cover(tile.xyz, fill, np.flatnonzero(rest), radius, tile.curve)
-        if len(cover) <= holes or holes == budget:
+        if len(cover) <= holes:
+            return fill, cover
+        if holes == budget:  # covering alone would exceed the budget
             break
         holes = min(2 * len(cover) - holes, budget)
-    else:
-        fill, cover = np.empty(0, dtype=np.int64), farthest_cover(tile, budget)
-    return fill, cover[:budget - len(fill)]
+    return np.empty(0, dtype=np.int64), farthest_cover(tile, budget)
 
 
 def farthest_cover(tile: Tile, budget: int) -> np.ndarray:
@@ -204,11 +207,11 @@ def typical_spacing(points: np.ndarray) -> float:
 
 def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius: float,
                curve: np.ndarray | None = None) -> np.ndarray:
-    """Candidates that bring every candidate within `radius` of a pick, largest gap first: farthest point
-    sampling continued from the kept points (each candidate's gap starts as its distance to them; with
-    none kept, plain FPS from the first candidate), stopped once no gap exceeds `radius`. Only candidates
-    farther than `radius` from the kept points take part. `curve`: the tile's curve (Tile.curve), holding
-    every kept point and candidate, if the caller has it (fewer distances are then queried)."""
+    """Candidates that bring every candidate within `radius` of a pick, in pick order: a greedy set cover
+    (model.set_cover) of the candidates farther than `radius` from the kept points (all of them when none is
+    kept), each pick the one of them that brings the most of them within it, so the holes with the most
+    points are closed first. `curve`: the tile's curve (Tile.curve), holding every kept point and
+    candidate, if the caller has it (fewer distances are then queried)."""
     if len(candidates) == 0 or radius <= 0:
         return np.empty(0, dtype=np.int64)
     if len(kept) == 0:
@@ -218,88 +221,10 @@ def hole_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius
         open_ = np.arange(len(candidates)) if curve is None else np.flatnonzero(~near_along(xyz, kept, candidates,
                                                                                              radius, curve))
         distance[open_] = nearest_distance(xyz[kept], xyz[candidates[open_]])
-    is_far = distance > radius
-    far = candidates[is_far]
+    far = candidates[distance > radius]
     if len(far) == 0:
         return far.astype(np.int64)
-    return far[farthest_continued(np.ascontiguousarray(xyz[far], dtype=np.float64), distance[is_far], radius)]
-
-
-def farthest_continued(points: np.ndarray, gap: np.ndarray, radius: float) -> np.ndarray:
-    """Positions among `points` (n, 3) float64 in pick order: farthest point sampling from each point's
-    starting `gap` (n,) (its distance to what is already kept), stopped once no gap exceeds `radius`.
-
-    The loop runs on Python floats and lists, a pick's update over the Reach table of its nearest points:
-    a pick costs about 10 microseconds, where numpy calls on its 4-16 neighbours cost about 48 (bcts_1+2's
-    covers: 25k picks took 1.2 s, now 0.25, all of it holding the GIL, which two in-process workers share)."""
-    reach = Reach(points)
-    gaps = gap.tolist()
-    largest = [(-g, i) for i, g in enumerate(gaps)]  # a max-heap of gaps, refreshed lazily (gaps only shrink)
-    heapq.heapify(largest)
-    picks: list[int] = []
-    while largest:
-        stale, pick = heapq.heappop(largest)
-        current = gaps[pick]
-        if -stale != current:  # shrunk since pushed: push its current gap and look again
-            if current > radius:
-                heapq.heappush(largest, (-current, pick))
-            continue
-        if current <= radius:
-            break
-        picks.append(pick)
-        for point, distance in reach.around(pick, current):
-            if distance < gaps[point]:
-                gaps[point] = distance
-        gaps[pick] = 0.0
-    return np.asarray(picks, dtype=np.int64)
-
-
-class Reach:
-    """The far points (n, 3) a pick of the hole cover can bring closer: a table of every point's
-    REACH_NEIGHBOURS nearest and their distances (one batched pykdtree query; a pick reaches about 4 on real
-    scans), each pick's row read out as Python numbers, and the tree for the rare pick whose reach goes
-    past its table (218 of bcts_1+2's 25k picks). Distances are sqrt(dx^2 + dy^2 + dz^2) summed in that
-    order, as numpy's einsum sums them (pykdtree's own differ from it by an ulp in 9 % of pairs), so the
-    cover is the same however a point is reached (the same sums in a batch of rows as one row at a time).
-    The table holds 192 bytes per far point."""
-
-    def __init__(self, points: np.ndarray) -> None:
-        self.points = points
-        self.tree = KDTree(points)
-        self.k = min(REACH_NEIGHBOURS, len(points))
-        # pykdtree's distances are dropped at once: ours are summed below
-        self.index = self.tree.query(points, k=self.k)[1].reshape(len(points), self.k).astype(np.int32)
-        self.distance = np.empty(self.index.shape)
-        for start in range(0, len(points), FRAME_POINTS):  # (m, k, 3) offsets a batch at a time
-            rows = slice(start, start + FRAME_POINTS)
-            offsets = points[self.index[rows]] - points[rows, None, :]
-            self.distance[rows] = np.sqrt(np.einsum("mkj,mkj->mk", offsets, offsets))
-
-    def distances(self, pick: int, targets: np.ndarray) -> np.ndarray:
-        """(m,) float64 distance from points[pick] to each of points[targets]."""
-        offsets = self.points[targets] - self.points[pick]
-        return np.sqrt(np.einsum("ij,ij->i", offsets, offsets))
-
-    def around(self, pick: int, reach: float) -> Iterable[tuple[int, float]]:
-        """(point, distance) of at least every point within `reach` of points[pick] (itself included), and
-        perhaps some beyond it: harmless to the cover, where no gap exceeds the reach, so none of theirs
-        can shrink."""
-        count = len(self.points)
-        bound = reach * (1 + 1e-9)
-        if self.distance[pick, -1] > bound or self.k == count:
-            return zip(self.index[pick].tolist(), self.distance[pick].tolist())
-        if not np.isfinite(reach):  # nothing kept yet: every point
-            reached = np.arange(count)
-        else:
-            k = min(4 * self.k, count)
-            while True:  # more reached than the table holds: ask the tree, k raised until the last is out of reach
-                index = self.tree.query(self.points[pick:pick + 1], k=k, distance_upper_bound=bound)[1].reshape(-1)
-                if index[-1] >= count or k == count:
-                    break
-                k = min(4 * k, count)
-            reached = index[index < count].astype(np.int64)
-        distance = self.distances(pick, reached)
-        return list(zip(reached.tolist(), distance.tolist()))
+    return far[greedy_set_cover(np.ascontiguousarray(xyz[far], dtype=np.float64), radius)]
 
 
 def near_along(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius: float,

@@ -119,17 +119,29 @@ def test_kept_prefix_leaves_no_point_beyond_the_radius_when_a_reserve_follows(me
     assert gap.max() <= radius
 
 
-def test_hole_cover_closes_the_largest_gaps_first():
-    """Continued from the kept points: each cover pick is the point farthest from the kept points and the
-    earlier picks, so those distances never grow along the cover, and the last is still beyond the radius."""
+def test_hole_cover_needs_fewer_picks_than_farthest_point_sampling_and_takes_the_fullest_holes_first():
+    """Stray returns over a plane: the greedy cover closes every hole with fewer picks than farthest point
+    sampling continued from the kept points needs at the same radius, and each pick brings no more newly
+    covered strays than the one before it."""
     tile = scattered_returns_over_a_plane(6)
+    xyz, radius = tile.xyz, 1.0
     kept = np.arange(0, 80_000, 20)  # the plane only
-    candidates = np.setdiff1d(np.arange(len(tile.xyz)), kept)
-    cover = hole_cover(tile.xyz, kept, candidates, 1.0)
-    gaps = [cKDTree(tile.xyz[np.concatenate([kept, cover[:j]])]).query(tile.xyz[cover[j]])[0]
-            for j in range(0, len(cover), max(1, len(cover) // 50))]
-    assert np.all(np.diff(gaps) <= 1e-12) and gaps[-1] > 1.0
-    assert gaps[0] == cKDTree(tile.xyz[kept]).query(tile.xyz[candidates])[0].max()
+    candidates = np.setdiff1d(np.arange(len(xyz)), kept)
+    cover = hole_cover(xyz, kept, candidates, radius)
+    assert cKDTree(xyz[np.concatenate([kept, cover])]).query(xyz[candidates])[0].max() <= radius
+    far = candidates[cKDTree(xyz[kept]).query(xyz[candidates])[0] > radius]
+    gap, fps = cKDTree(xyz[kept]).query(xyz[far])[0], 0
+    while gap.max() > radius:  # farthest point sampling continued from the kept points, brute force
+        pick = int(np.argmax(gap))
+        gap = np.minimum(gap, np.linalg.norm(xyz[far] - xyz[far[pick]], axis=1))
+        fps += 1
+    assert len(cover) < fps
+    newly, open_ = [], np.ones(len(far), dtype=bool)
+    for pick in cover:
+        reached = open_ & (np.linalg.norm(xyz[far] - xyz[pick], axis=1) < radius)
+        newly.append(reached.sum())
+        open_ &= ~reached
+    assert np.all(np.diff(newly) <= 0) and newly[0] > 1 and not open_.any()
 
 
 def test_a_budget_too_small_for_the_holes_is_spent_as_farthest_point_sampling():
@@ -147,41 +159,43 @@ def test_a_budget_too_small_for_the_holes_is_spent_as_farthest_point_sampling():
     assert gap <= 1.2 * fps_gap < random_gap
 
 
-def test_hole_cover_is_the_brute_force_cover_where_a_pick_reaches_many():
-    """The cover reads who a pick reaches from a table of 16 nearest and asks the tree past it; it must
-    pick exactly what farthest point sampling over every far point picks, with tight clusters of 40
-    (more than the table holds within a pick's reach) beside sparse strays."""
+def brute_force_greedy_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius: float) -> list[int]:
+    """The greedy set cover by its definition, O(n^2): far = candidates beyond the radius of every kept point;
+    repeatedly the first far point (in candidate order) that brings the most open far points within the radius."""
+    gap = (np.sqrt(((xyz[candidates, None] - xyz[None, kept]) ** 2).sum(-1)).min(axis=1) if len(kept)
+           else np.full(len(candidates), np.inf))
+    far = candidates[gap > radius]
+    reaches = np.sqrt(((xyz[far, None] - xyz[None, far]) ** 2).sum(-1)) < radius * (1 - 1e-9)
+    open_, picks = np.ones(len(far), dtype=bool), []
+    while open_.any():
+        best = int(np.argmax((reaches & open_).sum(axis=1)))
+        picks.append(int(far[best]))
+        open_ &= ~reaches[best]
+    return picks
+
+
+def test_hole_cover_is_the_brute_force_greedy_cover_where_a_pick_reaches_many():
+    """The cover asks the tree for 32 sites per far point, then more where that was not all: with tight clusters
+    of 40 far points (more than 32 within reach) beside sparse strays, it must pick exactly what the greedy set
+    cover by its definition picks."""
     rng = np.random.default_rng(7)
     clusters = np.repeat(rng.uniform(0, 30, (12, 3)), 40, axis=0) + rng.normal(0, 0.05, (480, 3))
     xyz = np.concatenate([clusters, rng.uniform(0, 30, (300, 3))])
     kept = np.arange(0, len(xyz), 97)
     candidates = np.setdiff1d(np.arange(len(xyz)), kept)
-    radius = 0.8
-    gap = np.sqrt(((xyz[candidates, None] - xyz[None, kept]) ** 2).sum(-1)).min(axis=1)
-    far, gap = candidates[gap > radius], gap[gap > radius]
-    expected = []
-    while len(far) and gap.max() > radius:  # the plain O(n^2) farthest point sampling from the kept points
-        pick = int(np.argmax(gap))
-        expected.append(far[pick])
-        gap = np.minimum(gap, np.sqrt(((xyz[far] - xyz[far[pick]]) ** 2).sum(-1)))
+    expected = brute_force_greedy_cover(xyz, kept, candidates, 0.8)
     assert len(expected) > 12
-    np.testing.assert_array_equal(hole_cover(xyz, kept, candidates, radius), expected)
+    np.testing.assert_array_equal(hole_cover(xyz, kept, candidates, 0.8), expected)
 
 
-def test_hole_cover_with_nothing_kept_is_farthest_point_sampling_from_the_first_candidate():
-    """With no kept point every gap starts infinite: the first candidate is picked, reaching every other
-    (the path no neighbour table serves), and the cover goes on as plain farthest point sampling."""
+def test_hole_cover_with_nothing_kept_covers_every_candidate_as_the_greedy_does():
+    """With no kept point every candidate is far: the cover is the greedy set cover of them all."""
     rng = np.random.default_rng(12)
     xyz = np.concatenate([rng.uniform(0, 10, (400, 3)), rng.normal(5, 0.02, (40, 3))])
     candidates = np.arange(3, len(xyz))
-    radius = 2.5
-    gap, picks = np.full(len(candidates), np.inf), []
-    while gap.max() > radius:
-        pick = int(np.argmax(gap))
-        picks.append(candidates[pick])
-        gap = np.minimum(gap, np.sqrt(((xyz[candidates] - xyz[candidates[pick]]) ** 2).sum(-1)))
-    assert picks[0] == 3 and len(picks) > 10
-    np.testing.assert_array_equal(hole_cover(xyz, np.empty(0, dtype=np.int64), candidates, radius), picks)
+    cover = hole_cover(xyz, np.empty(0, dtype=np.int64), candidates, 2.5)
+    np.testing.assert_array_equal(cover, brute_force_greedy_cover(xyz, np.empty(0, dtype=np.int64), candidates, 2.5))
+    assert cKDTree(xyz[cover]).query(xyz[candidates])[0].max() <= 2.5 and 1 < len(cover) < 40
 
 
 def test_candidates_settled_along_the_curve_are_within_reach_and_the_cover_is_unchanged():
