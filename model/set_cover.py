@@ -51,7 +51,7 @@ def leading_picks(targets_of: list[int], starts: np.ndarray, counts: np.ndarray,
     heap = [(-len(reached), site) for site, reached in reach.items()]
     heapq.heapify(heap)
     picks: list[int] = []
-    while heap and heap[0][0] < -1:
+    while heap:  # every entry brings two or more: one that falls to one waits for the single picks
         stale, site = heapq.heappop(heap)
         count = sum(uncovered[target] for target in reach[site])
         if count < -stale:

@@ -10,8 +10,8 @@ and holes, FPS's is that it flattens the density pattern. This method takes each
    curve keeps one: the density pattern of random sampling without its clumps;
 2. cover: points still farther than `COVER_SPACINGS` typical output spacings from every pick (holes in
    sparse areas: far ranges, isolated objects, stray returns) are covered by a greedy set cover
-   (model.set_cover: each pick the point near a hole that brings the most of its points within the
-   radius), and the fill gives up as many picks, so the count stays exact and no hole is left open
+   (model.set_cover: each pick the one of them that brings the most of them within the radius), and
+   the fill gives up as many picks, so the count stays exact and no hole is left open
    while the budget can close it.
 
 Picks come in priority order (fill picks in radical-inverse order along the curve, hole picks in the
@@ -34,7 +34,7 @@ from model.set_cover import greedy_set_cover
 
 COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
 SPACING_QUANTILES = np.linspace(0.0, 1.0, 65)  # a tile reports its picks' spacing as these quantiles
-MAX_COVER_ROUNDS = 6  # fill-and-cover rounds before the cover is cut to what the fill leaves
+MAX_COVER_ROUNDS = 6  # fill-and-cover rounds before the budget goes to farthest point sampling alone
 
 
 LossOf = Callable[[Tile, int], FillLoss]
