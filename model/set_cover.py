@@ -20,7 +20,8 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 INSIDE = 1.0 - 1e-9  # a pick reaches the points strictly inside this share of the radius: within it by any rounding
-REACHED = 32  # neighbours first asked for per point (a far point of a real scan has about 10 within the radius)
+REACHED = 32  # far points first asked for per far point (a far point of a real scan has about 10 within the radius)
+PAIRS = 1 << 22  # pairs a cover tables at most (with REACHED per far point, if more): about 100 MB with their lists
 
 
 def greedy_set_cover(points: np.ndarray, radius: float) -> np.ndarray:
@@ -65,21 +66,28 @@ def leading_picks(targets_of: list[int], starts: np.ndarray, counts: np.ndarray,
 
 
 def reach_pairs(points: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
-    """(p,) picks and (p,) points of every pair within the radius of each other (each point with itself
-    included), ascending by pick: each point's REACHED nearest within the radius from a kd-tree, asked again
-    with 4x as many for the rare point with more (being near is mutual, so a point's row is what it reaches)."""
+    """(p,) picks and (p,) points of pairs within the radius of each other, ascending by pick: each point's
+    REACHED nearest within the radius, from a kd-tree (being near is mutual, so a point's row is what it
+    reaches; each point reaches itself), asked again with 4x as many for the points with more while the
+    pairs (and the search's own table) stay within PAIRS: the memory is bounded whatever the hole. A point
+    whose row stays cut is credited with fewer points than it reaches: in so dense a hole the greedy takes
+    more picks than it needs, but every point is still brought within the radius."""
     tree = KDTree(points)
     bound = radius * INSIDE
-    rows, reached = [], []
+    sites, reached, kept = [], [], 0
     asked, k = np.arange(len(points)), min(REACHED, len(points))
     while len(asked):
         _, index = tree.query(points[asked], k=k, distance_upper_bound=bound)
         index = index.reshape(len(asked), k)
         found = index < len(points)
+        wider = min(4 * k, len(points))
         full = found[:, -1] if k < len(points) else np.zeros(len(asked), dtype=bool)
-        rows.append(np.repeat(asked[~full], found[~full].sum(axis=1)))
+        if kept + int(found[~full].sum()) + int(full.sum()) * wider > max(PAIRS, REACHED * len(points)):
+            full[:] = False  # asking again could outgrow the bound: the full rows stay cut
+        sites.append(np.repeat(asked[~full], found[~full].sum(axis=1)))
         reached.append(index[~full][found[~full]])
-        asked, k = asked[full], min(4 * k, len(points))
-    site_of, target_of = np.concatenate(rows), np.concatenate(reached).astype(np.int64)
+        kept += len(sites[-1])
+        asked, k = asked[full], wider
+    site_of, target_of = np.concatenate(sites), np.concatenate(reached).astype(np.int64)
     order = np.argsort(site_of, kind="stable")
     return site_of[order], target_of[order]

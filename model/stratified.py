@@ -90,23 +90,23 @@ def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget:
     and gives up more while the cover of what it leaves needs more (a smaller fill leaves more holes).
     Each retry gives up the shortfall twice over (the holes grow about as fast again as the fill shrinks),
     so one retry nearly always settles; picks the cover leaves unused are topped up by the caller. If the
-    rounds run out unsettled (a budget at about the tile's cover count: its floor), the budget is spent
-    on farthest point sampling alone, which covers the tile once the budget reaches its cover count
-    (model.cover); a budget at or under `cover_count` (a run's count of it; 0: unknown) goes there at
-    once, as no fill fits beside the cover, and so does one that covering alone would exceed (the farthest
-    point picks are spread at any count; a cut greedy cover is not)."""
+    rounds run out unsettled, or leave no fill (a budget at about the tile's cover count: its floor), the
+    budget is spent on farthest point sampling alone, which covers the tile once the budget reaches its
+    cover count (model.cover), and whose picks are spread at any count (a cut greedy cover's are not;
+    nor is a greedy cover of a whole dense tile cheap); a budget at or under `cover_count` (a run's count of
+    it; 0: unknown) goes there at once, as no fill fits beside the cover."""
     if budget <= cover_count:
         return np.empty(0, dtype=np.int64), farthest_cover(tile, budget)
     holes = min(holes, budget)
     for _ in range(MAX_COVER_ROUNDS):
+        if holes == budget:  # no fill left
+            break
         fill = fill_of(budget - holes)
         rest = tile.core.copy()
         rest[fill] = False
         cover = hole_cover(tile.xyz, fill, np.flatnonzero(rest), radius, tile.curve)
         if len(cover) <= holes:
             return fill, cover
-        if holes == budget:  # covering alone would exceed the budget
-            break
         holes = min(2 * len(cover) - holes, budget)
     return np.empty(0, dtype=np.int64), farthest_cover(tile, budget)
 

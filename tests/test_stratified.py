@@ -5,6 +5,7 @@ from scipy.spatial import cKDTree
 
 from model import Tile, get_simplifier
 from model.rules import radical_inverse_order
+from model import set_cover
 from model.selection import FillContext, FillLoss
 from model.stratified import hole_cover, near_along, systematic_picks, typical_spacing
 
@@ -175,11 +176,10 @@ def brute_force_greedy_cover(xyz: np.ndarray, kept: np.ndarray, candidates: np.n
 
 
 def test_hole_cover_is_the_brute_force_greedy_cover_where_a_pick_reaches_many():
-    """The cover asks the tree for 32 sites per far point, then more where that was not all: with tight clusters
-    of 40 far points (more than 32 within reach) beside sparse strays, it must pick exactly what the greedy set
-    cover by its definition picks."""
+    """With tight clusters of 24 far points (each reaching the whole cluster) beside sparse strays, the cover
+    must pick exactly what the greedy set cover by its definition picks."""
     rng = np.random.default_rng(7)
-    clusters = np.repeat(rng.uniform(0, 30, (12, 3)), 40, axis=0) + rng.normal(0, 0.05, (480, 3))
+    clusters = np.repeat(rng.uniform(0, 30, (12, 3)), 24, axis=0) + rng.normal(0, 0.05, (288, 3))
     xyz = np.concatenate([clusters, rng.uniform(0, 30, (300, 3))])
     kept = np.arange(0, len(xyz), 97)
     candidates = np.setdiff1d(np.arange(len(xyz)), kept)
@@ -188,14 +188,29 @@ def test_hole_cover_is_the_brute_force_greedy_cover_where_a_pick_reaches_many():
     np.testing.assert_array_equal(hole_cover(xyz, kept, candidates, 0.8), expected)
 
 
+def test_hole_cover_of_a_hole_denser_than_its_pairs_can_hold_still_covers_it(monkeypatch):
+    """The pairs a cover tables stay within a bound (the memory, whatever the hole), here lowered to 20,000: in a
+    hole of 3,000 far points within a few radii (450,000 pairs), some duplicated 40 times over, a pick is
+    credited with fewer points than it reaches, and every one of them must still end within the radius."""
+    monkeypatch.setattr(set_cover, "PAIRS", 20_000)
+    rng = np.random.default_rng(9)
+    dense = np.concatenate([rng.normal(0, 0.6, (2_600, 3)), np.repeat(rng.normal(0, 0.6, (10, 3)), 40, axis=0)])
+    xyz = np.concatenate([[[20.0, 0.0, 0.0]], dense])
+    candidates = np.arange(1, len(xyz))
+    assert len(set_cover.reach_pairs(dense, 0.5)[0]) <= 32 * len(dense)
+    cover = hole_cover(xyz, np.array([0]), candidates, 0.5)
+    assert len(np.unique(cover)) == len(cover) and 0 < len(cover) < 600
+    assert cKDTree(xyz[cover]).query(xyz[candidates])[0].max() <= 0.5
+
+
 def test_hole_cover_with_nothing_kept_covers_every_candidate_as_the_greedy_does():
     """With no kept point every candidate is far: the cover is the greedy set cover of them all."""
     rng = np.random.default_rng(12)
-    xyz = np.concatenate([rng.uniform(0, 10, (400, 3)), rng.normal(5, 0.02, (40, 3))])
+    xyz = np.concatenate([rng.uniform(0, 10, (400, 3)), rng.normal(5, 0.02, (20, 3))])
     candidates = np.arange(3, len(xyz))
-    cover = hole_cover(xyz, np.empty(0, dtype=np.int64), candidates, 2.5)
-    np.testing.assert_array_equal(cover, brute_force_greedy_cover(xyz, np.empty(0, dtype=np.int64), candidates, 2.5))
-    assert cKDTree(xyz[cover]).query(xyz[candidates])[0].max() <= 2.5 and 1 < len(cover) < 40
+    cover = hole_cover(xyz, np.empty(0, dtype=np.int64), candidates, 1.5)
+    np.testing.assert_array_equal(cover, brute_force_greedy_cover(xyz, np.empty(0, dtype=np.int64), candidates, 1.5))
+    assert cKDTree(xyz[cover]).query(xyz[candidates])[0].max() <= 1.5 and 1 < len(cover) < len(candidates) // 3
 
 
 def test_candidates_settled_along_the_curve_are_within_reach_and_the_cover_is_unchanged():
