@@ -34,6 +34,7 @@ import cloudcompare_peer
 from proctree import Measured, measure
 
 HERE = Path(__file__).resolve().parent
+sys.path.insert(0, str(HERE.parent))  # the PLY rows read the run's settings (pipeline.config) without an install
 DEFAULT_DATA = HERE.parents[1] / "shared" / "data" / "lidar"
 INPUTS = ("bcts", "lone-star", "street", "autzen")
 METHODS = ("learned", "fps", "voxel", "random")
