@@ -63,10 +63,17 @@ def cover_counts(points: np.ndarray, count: int, radii: np.ndarray, finest: floa
         shrinking = np.minimum.accumulate(insertion_radii(points, sampled))  # the true radii only shrink
         if finest is None or sampled == len(points) or shrinking[-1] <= finest or not finest > 0:
             break
-        growth = (shrinking[-1] / finest) ** 2 if np.isfinite(shrinking[-1]) else 4.0  # one pick: no gap yet
-        sampled = min(len(points), max(sampled + 1, int(np.ceil(1.25 * sampled * growth))))
+        sampled = grown_sample(sampled, float(shrinking[-1]), finest, len(points))
     # the picks before the first whose gap is at most r cover at r: those whose gap exceeds it
     needed = np.searchsorted(-shrinking, -np.asarray(radii, dtype=np.float64), side="left")
     if sampled == len(points):  # every point sampled: they cover at any radius
         return needed.astype(np.int64)
     return np.where(needed < len(shrinking), needed, -1).astype(np.int64)
+
+
+def grown_sample(sampled: int, gap: float, finest: float, points: int) -> int:
+    """How many of `points` picks to sample after `sampled` left a gap of `gap` (> finest): on a surface the
+    picks needed grow with (gap / finest)^2, and a quarter more is asked so one more round nearly always
+    does (4x after a single pick, which leaves no gap yet)."""
+    growth = (gap / finest) ** 2 if np.isfinite(gap) else 4.0
+    return min(points, max(sampled + 1, int(np.ceil(1.25 * sampled * growth))))

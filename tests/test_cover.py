@@ -88,3 +88,21 @@ def test_a_budget_at_the_cover_count_still_covers_the_tile():
         picks = get_simplifier("stratified")(Tile(xyz, core, np.zeros(3), 1, context), budget).indices
         assert len(np.unique(picks)) == budget
         assert largest_gap(xyz, picks) <= radius * (1 + 1e-6)  # farthest point sampling on float32 coordinates
+
+
+def test_a_tiles_own_count_starts_from_what_its_surveys_gap_asks_for():
+    """A tile whose survey's picks fell short at the run's radius counts again from as many picks as the gap
+    they left asks for (the finest grid radius they covered at), not from its share again; with no grid
+    radius covered, the gap is unknown and its share is sampled first."""
+    from pipeline.engine.phases import first_sample
+    from pipeline.engine.tasks import TileSurvey
+
+    radii = radius_grid(np.array([1.0, 2.0, 4.0]))
+    covers = np.where(radii >= 2.0, 50, -1)
+    survey = TileSurvey(np.zeros(3), 10_000, 0.0, 0.0, np.empty(0), 100, np.zeros(3), covers)
+    assert first_sample(survey, radii, 1.0) == int(np.ceil(1.25 * 100 * 4))  # gap 2: four times the picks, and a quarter
+    unknown = TileSurvey(np.zeros(3), 10_000, 0.0, 0.0, np.empty(0), 100, np.zeros(3), np.full(len(radii), -1))
+    assert first_sample(unknown, radii, 1.0) == 100
+    xyz = plane_with_strays(5)
+    radius = np.array([0.7])
+    assert cover_counts(xyz, 1_500, radius, finest=0.7)[0] == cover_counts(xyz, 50, radius, finest=0.7)[0]

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
+from model.cover import grown_sample
 from model.methods import Fill
 from model.rules import kept_count
 from model.selection import VoxelCounts
@@ -186,16 +187,27 @@ def cover_floors(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
                  sizes: np.ndarray, radius: float, work: WorkDir, config: RunConfig, progress: Progress) -> np.ndarray:
     """(tiles,) the fewest picks that leave no core point of each tile farther than `radius` from one: its
     survey's count (at the grid radius just below), or, where the survey's picks fell short (a tile sparse
-    for this radius), a count of the tile's own at the radius (a task that loads its core)."""
-    floors = count_at(np.array([survey.covers for survey in surveys]), radius_grid(sizes), radius)
+    for this radius), a count of the tile's own at the radius (a task that loads its core). That task starts
+    from as many picks as the gap the survey's left asks for (the finest grid radius it counted), not from
+    the survey's own count again, which is known to fall short."""
+    covers, radii = np.array([survey.covers for survey in surveys]), radius_grid(sizes)
+    floors = count_at(covers, radii, radius)
     short = np.flatnonzero(floors < 0)
     if len(short):
         cache_bytes, rule = chunk_cache_bytes(config), ClassRule.of(config)
         jobs = [CoverJob(str(work.store_path), int(tile_id), tuple(slices[tile_id]), cache_bytes,
-                         surveys[tile_id].picks, radius, config.seed, rule) for tile_id in short]
+                         first_sample(surveys[tile_id], radii, radius), radius, config.seed, rule) for tile_id in short]
         floors[short] = map_tasks(client, count_cover, jobs, plan, desc="count covers", progress=progress,
                                   cost=core_points(plan))
     return floors
+
+
+def first_sample(survey: TileSurvey, radii: np.ndarray, radius: float) -> int:
+    """The picks a tile's own cover count starts from: as many as the finest grid radius its survey's picks
+    covered at asks for to reach `radius` (model.cover.grown_sample), or the survey's picks again where they
+    covered at none (their gap is then unknown)."""
+    counted = radii[survey.covers >= 0]
+    return grown_sample(survey.picks, float(counted.min()), radius, survey.core_count) if len(counted) else survey.picks
 
 
 def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray, whole: np.ndarray,

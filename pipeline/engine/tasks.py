@@ -223,7 +223,7 @@ class CoverJob:
     tile_id: int
     slices: tuple[Slice, ...]
     cache_bytes: int
-    picks: int
+    sample: int  # picks sampled first (phases.first_sample), more as the gap they leave asks
     radius: float
     seed: int
     rule: ClassRule = ClassRule()
@@ -235,7 +235,7 @@ def count_cover(job: CoverJob, plan: TilePlan) -> int:
     in the same order)."""
     tile, _, _ = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, 0.0, job.seed, job.rule)
     core_xyz = tile.xyz if tile.core.all() else tile.xyz[tile.core]
-    return int(cover_counts(core_xyz, job.picks, np.array([job.radius]), finest=job.radius)[0])
+    return int(cover_counts(core_xyz, job.sample, np.array([job.radius]), finest=job.radius)[0])
 
 
 def load_survey(path: Path) -> TileSurvey:
