@@ -29,10 +29,11 @@ class Method:
     light_on_gil: ClassVar[bool] = False     # True: its work runs in compiled code (numpy, fpsample), so threads of
                                              # one process beat a cluster's start on bigger scans (measured; fpsample
                                              # itself keeps the GIL: its picks go one thread at a time)
-    tiles_in_processes: ClassVar[bool] = False  # True: its tile work (survey and picks) is heavy and holds the GIL a
-                                                # fair share (fpsample throughout, the hole cover's loop, numpy on
-                                                # small tiles), so a run on threads of one process gives it to worker
-                                                # processes (from 1M points: pipeline.engine.processes)
+    tile_processes_from: ClassVar[int | None] = None  # scan points from which a run on threads of one process gives
+                                                      # its tile work (survey and picks) to worker processes, where that
+                                                      # work holds the GIL a fair share (fpsample throughout, the hole
+                                                      # cover's loop, numpy on small tiles): pipeline.engine.processes.
+                                                      # None: never (the start costs more than the GIL takes)
     sees_tile_extent: ClassVar[bool] = False  # True: its picks depend on how far a tile reaches, so the run does not
                                               # merge sparse tiles for it (pipeline.config.RunConfig.merge_limit)
 
@@ -71,7 +72,7 @@ class Fps(Method):
     reads_halo: ClassVar[bool] = False
     spaces_evenly: ClassVar[bool] = True
     light_on_gil: ClassVar[bool] = True
-    tiles_in_processes: ClassVar[bool] = True
+    tile_processes_from: ClassVar[int | None] = 1_000_000  # fpsample alone holds the GIL: 519-698k gained nothing
 
     def __call__(self, tile: Tile, budget: int) -> Selection:
         return fps_simplify(tile, budget)
@@ -122,7 +123,8 @@ class Fill(Method):
     is a point farther than `cover_spacings` typical output spacings from every pick."""
 
     cover_spacings: float = COVER_SPACINGS
-    tiles_in_processes: ClassVar[bool] = True
+    tile_processes_from: ClassVar[int | None] = 300_000  # the survey and hole cover: a tie at 277k, 0.05-0.16 s
+                                                         # gained from 410k, 0.06-0.1 s lost at 110-155k (2 cores)
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -24,18 +24,22 @@ HANG_GUARD_S = 300  # a bound on waiting for a stopped run, not a speed threshol
 
 @pytest.fixture(scope="module")
 def patch(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A patch under the default's tile_processes_from: an in-process run of it surveys and picks on its threads."""
+    from model.methods import Learned
+
     path = tmp_path_factory.mktemp("interrupt") / "patch.las"
-    write_dense_patch(path, n=300_000)
+    write_dense_patch(path, n=Learned.tile_processes_from - 50_000)
     return path
 
 
 @pytest.fixture(scope="module")
 def big_patch(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A patch of PROCESS_TILE_POINTS points: an in-process run of it surveys and picks in tile processes."""
-    from pipeline.engine.processes import PROCESS_TILE_POINTS
+    """A patch of the default's tile_processes_from points: an in-process run of it surveys and picks in tile
+    processes."""
+    from model.methods import Learned
 
     path = tmp_path_factory.mktemp("interrupt") / "big_patch.las"
-    write_dense_patch(path, n=PROCESS_TILE_POINTS)
+    write_dense_patch(path, n=Learned.tile_processes_from)
     return path
 
 

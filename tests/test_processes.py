@@ -13,24 +13,25 @@ from concurrent.futures.process import BrokenProcessPool, _RemoteTraceback
 import pytest
 
 from pipeline.engine.execute import PROCESS_LOSSES, map_tasks
-from pipeline.engine.processes import PROCESS_TILE_POINTS, TilesElsewhere, tile_processes, use_tile_processes
+from pipeline.engine.processes import TilesElsewhere, tile_processes, use_tile_processes
 from pipeline.engine.tasks import simplify_tile, survey_tile
 from pipeline.errors import PipelineError
 from pipeline.progress import Progress
 
 
 def test_only_a_big_scan_of_a_method_with_heavy_tiles_gives_them_to_processes():
-    """fps (fpsample holds the GIL) and the fill family (their surveys and picks held it a fair share): measured
-    faster in processes; voxel gained 3 % for twice the memory and random lost; tcp and the paper's network were
-    not measured (the network would import torch in each process)."""
+    """fps (fpsample holds the GIL) from 1M points and the fill family (their surveys and hole covers hold it a
+    fair share) from 300k: measured faster in processes from there; voxel gained 3 % for twice the memory and
+    random lost; tcp and the paper's network were not measured (the network would import torch in each process)."""
     from model.registry import REGISTERED
 
-    assert {name for name, method in REGISTERED.items() if method.tiles_in_processes} == {
-        "fps", "stratified", "stratified-detail", "learned"}
-    assert use_tile_processes(PROCESS_TILE_POINTS, 2, True)
-    assert not use_tile_processes(PROCESS_TILE_POINTS - 1, 2, True)
-    assert not use_tile_processes(PROCESS_TILE_POINTS, 1, True)  # one thread: nothing to run beside it
-    assert not use_tile_processes(PROCESS_TILE_POINTS, 2, False)
+    starts = {name: method.tile_processes_from for name, method in REGISTERED.items()
+              if method.tile_processes_from is not None}
+    assert starts == {"fps": 1_000_000, "stratified": 300_000, "stratified-detail": 300_000, "learned": 300_000}
+    assert use_tile_processes(300_000, 2, 300_000)
+    assert not use_tile_processes(299_999, 2, 300_000)
+    assert not use_tile_processes(300_000, 1, 300_000)  # one thread: nothing to run beside it
+    assert not use_tile_processes(10**9, 2, None)
 
 
 def test_surveys_and_picks_run_in_a_worker_process_and_everything_else_on_the_threads():

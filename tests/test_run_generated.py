@@ -160,13 +160,14 @@ def test_one_and_two_workers_and_this_process_give_identical_bytes(tmp_path, den
 @pytest.mark.parametrize("method", ["fps", "learned"])
 def test_tiles_surveyed_and_picked_in_worker_processes_give_the_threads_bytes(tmp_path, dense_patch, monkeypatch,
                                                                                method):
-    """From PROCESS_TILE_POINTS (here 0) an in-process run surveys and picks its tiles in forkserver processes
-    (for fps the survey counts voxels, for learned it also predicts the fill loss): the same file."""
+    """From the method's tile_processes_from (here 0) an in-process run surveys and picks its tiles in forkserver
+    processes (for fps the survey counts voxels, for learned it also predicts the fill loss): the same file."""
     import pipeline.engine.processes as processes
+    from model.registry import REGISTERED
 
     threads = tmp_path / "threads.laz"
     pipeline.run(dense_patch, threads, ratio=0.1, method=method, tile_size=4.0, seed=7, workers=2)
-    monkeypatch.setattr(processes, "PROCESS_TILE_POINTS", 0)
+    monkeypatch.setattr(type(REGISTERED[method]), "tile_processes_from", 0)
     sent = []
     submit = processes.TilesElsewhere.submit
 

@@ -13,12 +13,16 @@ memory probe) and `fps` 1.48-1.57 -> 1.40-1.46 s; `learned` on a 2.8M street 5.9
 a 1.5M one 3.3 -> 2.8-2.9 s. The run's tree then peaks about twice as high (bcts `learned` 176-208 -> 395
 MiB, about a local cluster's), with the same bytes. `voxel` gained 3 % (its simplify phase 1.23 -> 0.98 s,
 its reading 0.2 s slower) for twice the memory, and `random` lost (1.38-1.40 -> 1.48-1.60 s): theirs stay
-on threads. Reading stays on the run's threads (lazrs decodes on every core). Below PROCESS_TILE_POINTS the
-forkserver's start, which competes with the reading, costs what the processes save: with the server importing
-only what tiles need (139 ms; 245 with the scan reader), a 1M street ran `fps` 1.33-1.41 -> 1.19-1.24 s and
-`learned` 2.68-2.76 -> 2.56-2.68 s in processes, lone-star's 519k points gained nothing (`fps` 0.75-0.78 ->
-0.70-0.78, `learned` 1.42-1.48 -> 1.43-1.57 s), and the tree peaks higher (the 1M street's `learned` 186-228
--> 377 MiB).
+on threads. Reading stays on the run's threads (lazrs decodes on every core). Below a method's
+`tile_processes_from` the forkserver's start, which competes with the reading, costs what the processes save:
+with the server importing only what tiles need (139 ms; 245 with the scan reader), a 1M street ran `fps`
+1.33-1.41 -> 1.19-1.24 s and `learned` 2.68-2.76 -> 2.56-2.68 s in processes, and the tree peaks higher (the 1M
+street's `learned` 186-228 -> 377 MiB). `fps` gains nothing below that (0.3.9, 2 cores, wall s, threads ->
+processes: lone-star's 519k 0.78-0.81 -> 0.83-0.88, the extra-bytes file's 698k 0.89-0.94 -> 0.91-1.04), but
+the fill family's tiles, whose hole cover and survey have grown, do from about 300k points: `learned` on
+lone-star 1.59-1.69 -> 1.50-1.52, bcts_1's 532k 1.37-1.38 -> 1.32-1.34, the extra-bytes file 1.70-1.76 ->
+1.56-1.65, three lone-star pieces' 410k 1.80-1.82 -> 1.68-1.72, two pieces' 277k 1.33-1.39 -> 1.32-1.36 (a tie;
+`stratified` 0.96-1.02 either way), one piece's 155k 0.86-0.91 -> 0.96-0.98 and autzen's 110k 0.55 -> 0.64.
 """
 from __future__ import annotations
 
@@ -39,16 +43,15 @@ from threadpoolctl import threadpool_limits
 from pipeline.engine.allocator import map_large_arrays
 from pipeline.engine.tasks import count_cover, simplify_tile, survey_tile
 
-PROCESS_TILE_POINTS = 1_000_000  # scans from this size give their tile work to worker processes
 SERVER_PRELOAD = "pipeline.engine.tile_server"  # the forkserver imports the tasks once
 PR_SET_PDEATHSIG = 1  # Linux's prctl option: a signal this process gets when its parent ends
 
 
-def use_tile_processes(points: int, threads: int, tiles_in_processes: bool) -> bool:
+def use_tile_processes(points: int, threads: int, processes_from: int | None) -> bool:
     """Whether an in-process run of `points` on `threads` task threads sends its tiles' surveys and picks to
-    worker processes: for a method whose tile work holds the GIL a fair share (Method.tiles_in_processes), on
-    2 or more threads, where a forkserver exists."""
-    return (tiles_in_processes and threads >= 2 and points >= PROCESS_TILE_POINTS
+    worker processes: from the method's `processes_from` points (Method.tile_processes_from; None: never),
+    on 2 or more threads, where a forkserver exists."""
+    return (processes_from is not None and threads >= 2 and points >= processes_from
             and "forkserver" in multiprocessing.get_all_start_methods())
 
 

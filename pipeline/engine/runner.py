@@ -127,7 +127,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     guard = StopGuard(stop_grace_s)
     try:
         threads = local_workers(config.workers)
-        elsewhere = use_tile_processes(scan.point_count, threads, config.simplifier.tiles_in_processes)
+        elsewhere = use_tile_processes(scan.point_count, threads, config.simplifier.tile_processes_from)
         here = runs_in_process(scan.point_count, config.in_process_points, threads, config.simplifier.light_on_gil,
                                elsewhere)
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here,
