@@ -25,6 +25,7 @@ class Method:
     """A simplifier with its parameters. Class flags tell the run how to feed it."""
 
     reads_halo: ClassVar[bool] = True        # False: picks from the core alone, so a run loads no halo for it
+    picks_read_halo: ClassVar[bool] = True   # False: only its survey reads the halo; its picks read the core alone
     spaces_evenly: ClassVar[bool] = False    # True: tile budgets follow covered volume, not point counts
     light_on_gil: ClassVar[bool] = False     # True: its work runs in compiled code (numpy, fpsample), so threads of
                                              # one process beat a cluster's start on bigger scans (measured; fpsample
@@ -123,6 +124,7 @@ class Fill(Method):
     is a point farther than `cover_spacings` typical output spacings from every pick."""
 
     cover_spacings: float = COVER_SPACINGS
+    picks_read_halo: ClassVar[bool] = False  # a run surveys its loss (the halo as neighbours); the fill and cover: core
     tile_processes_from: ClassVar[int | None] = 300_000  # the survey and hole cover: a tie at 277k, 0.05-0.16 s
                                                          # gained from 410k, 0.06-0.1 s lost at 110-155k (2 cores)
 

@@ -183,6 +183,44 @@ def test_tiles_surveyed_and_picked_in_worker_processes_give_the_threads_bytes(tm
     assert elsewhere.read_bytes() == threads.read_bytes()
 
 
+@pytest.mark.parametrize("method", ["learned", "stratified"])
+def test_a_surveyed_fills_picks_load_the_core_alone_and_give_the_bytes_of_a_load_with_its_halo(
+        tmp_path, dense_patch, monkeypatch, method):
+    """The halo serves a fill's survey (its loss, saved for the core); its fill and hole cover pick among and
+    measure the core alone, so its picks load no halo: every tile's pick step loads its cells' points only,
+    and the file is the one a pick step that loaded the halo writes."""
+    import pipeline.engine.runner as runner
+    from model.registry import REGISTERED
+
+    loaded: dict[bool, list[tuple[int, int]]] = {True: [], False: []}
+    plans = []
+    simplify, plan_tiles = runner.simplify_tile, runner.bucket_scan
+
+    def planned(*args, **kwargs):
+        found = plan_tiles(*args, **kwargs)
+        plans.append(found[0])
+        return found
+
+    def counted(job, plan):
+        outcome = simplify(job, plan)
+        loaded[type(job.simplifier).picks_read_halo].append((outcome.tile_id, outcome.points))
+        return outcome
+
+    monkeypatch.setattr(runner, "simplify_tile", counted)
+    monkeypatch.setattr(runner, "bucket_scan", planned)
+    settings = dict(ratio=0.1, method=method, tile_size=4.0, seed=7, workers=1)
+    core_only = tmp_path / "core.laz"
+    pipeline.run(dense_patch, core_only, **settings)
+    monkeypatch.setattr(type(REGISTERED[method]), "picks_read_halo", True)
+    with_halo = tmp_path / "halo.laz"
+    pipeline.run(dense_patch, with_halo, **settings)
+    cells = [{tile_id: tile.count for tile_id, tile in enumerate(plan.tiles)} for plan in plans]
+    assert len(loaded[False]) == len(cells[0]) > 1
+    assert all(points == cells[0][tile_id] for tile_id, points in loaded[False])
+    assert sum(points for _, points in loaded[True]) > sum(cells[1].values())  # the halo was there to read
+    assert with_halo.read_bytes() == core_only.read_bytes()
+
+
 @pytest.mark.filterwarnings("error::RuntimeWarning")  # a resumed phase with no task left once warned of an empty mean
 @pytest.mark.parametrize("method", ["voxel", "stratified"])
 def test_a_run_that_failed_after_its_survey_resumes_to_the_same_bytes(tmp_path, dense_patch, monkeypatch, method):

@@ -42,10 +42,10 @@ RESERVE_MIN = 16
 
 
 def bucket_scan(client: Client | Executor, scan: Scan, pieces: list[Piece], work: WorkDir, config: RunConfig, rule: ClassRule,
-                progress: Progress) -> tuple[TilePlan, list[list[Slice]], np.ndarray, np.ndarray]:
+                progress: Progress) -> tuple[TilePlan, TileSlices, np.ndarray, np.ndarray]:
     """The one streamed pass: pieces stored sorted by grid cell (those an earlier attempt finished are
-    reused); then the plan from the summed density, each tile's core+halo as row slices of the pieces,
-    the (tiles,) core points `rule` keeps whole and the scan's (256,) points per class."""
+    reused); then the plan from the summed density, each tile's core+halo (and core alone) as row slices of
+    the pieces, the (tiles,) core points `rule` keeps whole and the scan's (256,) points per class."""
     mins, maxs = scan.bounds
     try:
         grid = DensityGrid.covering(mins, maxs, config.tile_size)
@@ -65,15 +65,37 @@ def bucket_scan(client: Client | Executor, scan: Scan, pieces: list[Piece], work
     plan = plan_tiles(grid, cells, counts, config.max_tile_points, sub_counts, config.merge_limit)
     whole = plan.per_tile(protected, sum(c.protected for c in copies.values()) if copies else None)  # plan.cells == cells
     boxes = cell_boxes([b.cells for b in buckets], grid.shape[1])
-    slices: list[list[Slice]] = []
     overlap = seen_overlap(config)
-    for tile_id in range(len(plan.tiles)):  # only the pieces a halo meets (not every piece for every tile)
+    seen = tile_slices(plan, overlap, pieces, buckets, copies, boxes)
+    core = seen if overlap == 0 else tile_slices(plan, 0.0, pieces, buckets, copies, boxes)
+    return plan, TileSlices(seen, core), whole, np.sum([b.classes for b in buckets], axis=0)
+
+
+@dataclass(frozen=True)
+class TileSlices:
+    """Each tile's rows as slices of the stored pieces: with the halo a method reads (`seen`), and its core
+    alone (`core`: a cover count's load, and a surveyed fill's picks, which need no halo)."""
+
+    seen: list[list[Slice]]
+    core: list[list[Slice]]
+
+    def picks(self, config: RunConfig) -> list[list[Slice]]:
+        """What a tile's picks load (see picks_overlap)."""
+        return self.seen if picks_overlap(config) > 0 else self.core
+
+
+def tile_slices(plan: TilePlan, overlap: float, pieces: list[Piece], buckets: list[BucketedPiece],
+                copies: dict[int, SubCellIndex], boxes: np.ndarray) -> list[list[Slice]]:
+    """Each tile's core and `overlap` of halo as slices of the pieces (only of the pieces its halo meets,
+    not every piece for every tile; boxes: (pieces, 4) each piece's occupied cell rows and columns)."""
+    slices: list[list[Slice]] = []
+    for tile_id in range(len(plan.tiles)):
         i0, i1, j0, j1 = plan.halo_cell_rect(tile_id, overlap)
         meets = np.flatnonzero((boxes[:, 0] < i1) & (boxes[:, 1] > i0) & (boxes[:, 2] < j1) & (boxes[:, 3] > j0))
         slices.append([s for k in meets for s in halo_slices(plan, tile_id, overlap, pieces[k].number,
                                                              buckets[k].cells, buckets[k].starts,
                                                              copies.get(pieces[k].number))])
-    return plan, slices, whole, np.sum([b.classes for b in buckets], axis=0)
+    return slices
 
 
 def sort_crowded_cells(client: Client | Executor, crowded: np.ndarray, pieces: list[Piece],
@@ -154,7 +176,7 @@ def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray
     return weights, ScanFill(scales, max(cover_spacings * spacing, even_spacing(occupied, sizes, target)))
 
 
-def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], counts: np.ndarray,
+def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, counts: np.ndarray,
                  work: WorkDir, config: RunConfig,
                  progress: Progress) -> tuple[np.ndarray, ScanFill | None, list[VoxelCounts] | None]:
     """(tiles,) budgets for the (tiles,) points each tile thins, summing to round(ratio * their sum), the
@@ -165,7 +187,7 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
     weights, floors, holes, fill, voxels = None, np.minimum(counts, 1), None, None, None  # no tile left empty
     simplifier = config.simplifier
     if simplifier.spaces_evenly or isinstance(simplifier, Fill):
-        surveys, sizes = survey_scan(client, plan, slices, work, config, target, progress)
+        surveys, sizes = survey_scan(client, plan, slices.seen, work, config, target, progress)
         occupied = np.array([survey.occupied for survey in surveys])
         voxels = [VoxelCounts(sizes, survey.occupied) for survey in surveys]
         if isinstance(simplifier, Fill):
@@ -175,7 +197,7 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
             weights, fill = scan_fill(surveys, occupied, sizes, target, simplifier.cover_spacings,
                                       simplifier.loss_strength())
             holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes, fill.cover_radius)
-            floors = cover_floors(client, plan, slices, surveys, sizes, fill.cover_radius, work, config, progress)
+            floors = cover_floors(client, plan, slices.core, surveys, sizes, fill.cover_radius, work, config, progress)
             fill = replace(fill, cover_counts=floors)
         else:  # spaced evenly: tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
@@ -210,13 +232,14 @@ def first_sample(survey: TileSurvey, radii: np.ndarray, radius: float) -> int:
     return grown_sample(survey.picks, float(counted.min()), radius, survey.core_count) if len(counted) else survey.picks
 
 
-def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets: np.ndarray, whole: np.ndarray,
+def make_jobs(work: WorkDir, plan: TilePlan, slices: TileSlices, budgets: np.ndarray, whole: np.ndarray,
               config: RunConfig, fill: ScanFill | None = None,
               voxels: list[VoxelCounts] | None = None) -> list[TileJob]:
     """One job per tile that keeps a point (a budget, or points kept whole), in tile order: neighbours
     share pieces, so caches stay warm."""
     jobs = []
-    overlap, cache_bytes, rule = seen_overlap(config), chunk_cache_bytes(config), ClassRule.of(config)
+    overlap, cache_bytes, rule = picks_overlap(config), chunk_cache_bytes(config), ClassRule.of(config)
+    loads = slices.picks(config)
     for tile_id, tile in enumerate(plan.tiles):
         budget = int(budgets[tile_id])
         if budget == 0 and whole[tile_id] == 0:
@@ -227,7 +250,7 @@ def make_jobs(work: WorkDir, plan: TilePlan, slices: list[list[Slice]], budgets:
                                                  cover_radius=fill.cover_radius,
                                                  cover_count=0 if fill.cover_counts is None
                                                  else int(fill.cover_counts[tile_id]))
-        jobs.append(TileJob(str(work.store_path), str(work.tile_path(tile_id)), tile_id, tuple(slices[tile_id]),
+        jobs.append(TileJob(str(work.store_path), str(work.tile_path(tile_id)), tile_id, tuple(loads[tile_id]),
                             overlap, cache_bytes, budget, reserve, config.simplifier, config.seed, **surveyed,
                             rule=rule, voxels=None if voxels is None else voxels[tile_id]))
     return jobs
@@ -264,6 +287,14 @@ def seen_overlap(config: RunConfig) -> float:
     (fps, voxel, random pick from the core alone: the same picks, without reading and holding the halo,
     up to 0.9x a dense tile's core on a mobile street)."""
     return config.overlap if config.simplifier.reads_halo else 0.0
+
+
+def picks_overlap(config: RunConfig) -> float:
+    """How far past its core a tile's picks load it: its seen halo, or nothing for a surveyed fill (the halo
+    serves its survey's loss, which is saved for the core; the fill and hole cover pick among and measure
+    the core alone), so its picks neither read nor hold the halo: lone-star's tiles load 1.92 points per
+    core point with it."""
+    return seen_overlap(config) if config.simplifier.picks_read_halo else 0.0
 
 
 def chunk_cache_bytes(config: RunConfig) -> int:

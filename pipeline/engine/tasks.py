@@ -90,8 +90,8 @@ def simplify_tile(job: TileJob, plan: TilePlan) -> TileOutcome:
     started = time.perf_counter()
     tile, records, whole = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, job.overlap,
                                      job.seed, job.rule)
-    context = None if job.survey_path is None else FillContext(load_fill_loss(Path(job.survey_path)), job.detail_scale,
-                                                                job.cover_radius, kept=job.budget,
+    context = None if job.survey_path is None else FillContext(load_fill_loss(Path(job.survey_path), tile.core),
+                                                                job.detail_scale, job.cover_radius, kept=job.budget,
                                                                 cover_count=job.cover_count)
     tile = replace(tile, context=context, voxels=job.voxels)
     count = min(job.budget + job.reserve, tile.core_count)
@@ -207,7 +207,7 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
         spacings, filled = pick_spacings(picks), occupied_voxels(picks, sizes, origin=column_min(core_xyz))
     loss_sum = float(loss.relative[tile.core].sum()) if loss.relative is not None else 0.0
     survey = TileSurvey(occupied, tile.core_count, loss.level, loss_sum, spacings, budget, filled, covers)
-    arrays = {} if loss.relative is None else {"relative": loss.relative.astype(np.float32)}
+    arrays = {} if loss.relative is None else {"relative": loss.relative[tile.core].astype(np.float32)}
     write_atomically(Path(job.survey_path), lambda tmp: save_npz(
         tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
         spacings=spacings, picks=budget, filled=filled, covers=covers, **arrays))
@@ -245,8 +245,13 @@ def load_survey(path: Path) -> TileSurvey:
                           saved["spacings"], int(saved["picks"]), saved["filled"], saved["covers"])
 
 
-def load_fill_loss(path: Path) -> FillLoss:
-    """A survey's fill loss for the simplify step (relative None when the method weighs points equally)."""
+def load_fill_loss(path: Path, core: np.ndarray) -> FillLoss:
+    """A survey's fill loss for the simplify step, on a load of the tile whose (n,) core mask is `core`: the
+    survey saves it for the core (its halo has none), in the core's order, whatever halo either load holds
+    (relative None when the method weighs points equally)."""
     with np.load(path) as saved:
-        relative = saved["relative"].astype(np.float64) if "relative" in saved.files else None
+        if "relative" not in saved.files:
+            return FillLoss(None, float(saved["level"]))
+        relative = np.zeros(len(core))
+        relative[core] = saved["relative"]
         return FillLoss(relative, float(saved["level"]))
