@@ -20,9 +20,10 @@ EARLIER_NEIGHBOURS = 8  # nearest picks of its own block searched for a pick's n
 
 
 def cover_order(points: np.ndarray, count: int) -> np.ndarray:
-    """Indices of the first min(count, n) picks of farthest point sampling on `points` (n, 3) from the first
-    point (fpsample, on float32 coordinates; an index repeats once every point is picked): the picks a
-    tile's cover is counted with, and the ones a tile at its floor keeps (model.stratified)."""
+    """Indices of the first min(count, n) picks of farthest point sampling on `points` (n, 3) from the point
+    fps_order's start 0 gives (fpsample, on float32 coordinates; an index repeats once every point is picked):
+    the picks a tile's cover is counted with, and the ones a tile at its floor keeps (model.stratified); the
+    same points in the same order give the same picks."""
     return fps_order(np.ascontiguousarray(points, dtype=np.float32), min(count, len(points)), 0)
 
 

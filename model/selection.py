@@ -28,7 +28,7 @@ class FillContext:
     scan's); holes are points farther than cover_radius (scan units) from every pick. `kept` is how many
     picks the run keeps (the tile's budget): fill and cover are planned for that prefix, and picks asked
     beyond it (the stitch's seam reserve) come after it, so cutting the reserve never opens a hole.
-    `cover_count`: the picks farthest point sampling from the first core point needs to cover the core at
+    `cover_count`: the picks farthest point sampling (model.cover.cover_order) needs to cover the core at
     cover_radius (model.cover; 0: not counted)."""
 
     loss: FillLoss

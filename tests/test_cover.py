@@ -5,7 +5,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from model import Tile, get_simplifier
-from model.baselines import fps_order
+from model.baselines import bucket_height, fps_order
 from model.cover import cover_counts, insertion_radii
 from model.selection import FillContext, FillLoss
 from tiling.budgets import count_at, occupied_voxels, radius_grid, voxels_at
@@ -29,6 +29,20 @@ def test_insertion_radii_are_each_picks_distance_to_the_picks_before_it():
     picks = xyz[fps_order(xyz.astype(np.float32), 1_500, 0)]
     brute = [np.inf] + [float(np.sqrt(((picks[:k] - picks[k]) ** 2).sum(axis=1)).min()) for k in range(1, 1_500)]
     np.testing.assert_allclose(gaps, brute)
+
+
+def test_farthest_point_sampling_stays_exact_with_buckets_that_grow_like_the_square_root_of_the_points():
+    """fpsample's buckets of 2**h points: log2(n) - 8 up to 2**15 points, then about sqrt(n)/2 (measured
+    faster: model.baselines.bucket_height); each pick is still the point farthest from the picks before it."""
+    assert [bucket_height(n) for n in (100, 9_600, 26_000, 40_000, 70_000, 140_000, 300_000, 1_000_000)] == [
+        3, 5, 6, 6, 7, 7, 8, 8]
+    assert all(2 ** bucket_height(n) <= n for n in range(2, 70_000, 997))
+    xyz = np.random.default_rng(3).uniform(0, 50, size=(70_000, 3))  # float distances: no ties
+    order = fps_order(xyz.astype(np.float32), 60, 0)
+    nearest = np.sqrt(((xyz - xyz[order[0]]) ** 2).sum(axis=1))  # fpsample starts where its tree puts `start`
+    for pick in order[1:]:
+        assert nearest[pick] == nearest.max()
+        nearest = np.minimum(nearest, np.sqrt(((xyz - xyz[pick]) ** 2).sum(axis=1)))
 
 
 def test_a_cover_count_of_picks_leaves_no_point_beyond_the_radius_and_one_fewer_does():
