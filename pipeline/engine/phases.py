@@ -79,10 +79,6 @@ class TileSlices:
     seen: list[list[Slice]]
     core: list[list[Slice]]
 
-    def picks(self, config: RunConfig) -> list[list[Slice]]:
-        """What a tile's picks load (see picks_overlap)."""
-        return self.seen if picks_overlap(config) > 0 else self.core
-
 
 def tile_slices(plan: TilePlan, overlap: float, pieces: list[Piece], buckets: list[BucketedPiece],
                 copies: dict[int, SubCellIndex], boxes: np.ndarray) -> list[list[Slice]]:
@@ -239,7 +235,7 @@ def make_jobs(work: WorkDir, plan: TilePlan, slices: TileSlices, budgets: np.nda
     share pieces, so caches stay warm."""
     jobs = []
     overlap, cache_bytes, rule = picks_overlap(config), chunk_cache_bytes(config), ClassRule.of(config)
-    loads = slices.picks(config)
+    loads = slices.seen if overlap > 0 else slices.core
     for tile_id, tile in enumerate(plan.tiles):
         budget = int(budgets[tile_id])
         if budget == 0 and whole[tile_id] == 0:
@@ -283,9 +279,10 @@ def core_points(plan: TilePlan) -> Callable[[TileJob | SurveyJob | CoverJob], in
 
 
 def seen_overlap(config: RunConfig) -> float:
-    """How far past its core a tile is loaded: the halo, or nothing for a method that never looks at it
-    (fps, voxel, random pick from the core alone: the same picks, without reading and holding the halo,
-    up to 0.9x a dense tile's core on a mobile street)."""
+    """How far past its core a tile's survey (and, but for a surveyed fill's, its picks: picks_overlap) loads
+    it: the halo, or nothing for a method that never looks at it (fps, voxel, random pick from the core
+    alone: the same picks, without reading and holding the halo, up to 0.9x a dense tile's core on a
+    mobile street)."""
     return config.overlap if config.simplifier.reads_halo else 0.0
 
 

@@ -205,9 +205,10 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
         loss = job.simplifier.fill_loss(tile, budget)
         picks = tile.xyz[trial_fill(tile, budget, loss)]
         spacings, filled = pick_spacings(picks), occupied_voxels(picks, sizes, origin=column_min(core_xyz))
-    loss_sum = float(loss.relative[tile.core].sum()) if loss.relative is not None else 0.0
+    core_loss = None if loss.relative is None else loss.relative[tile.core]
+    loss_sum = float(core_loss.sum()) if core_loss is not None else 0.0
     survey = TileSurvey(occupied, tile.core_count, loss.level, loss_sum, spacings, budget, filled, covers)
-    arrays = {} if loss.relative is None else {"relative": loss.relative[tile.core].astype(np.float32)}
+    arrays = {} if core_loss is None else {"relative": core_loss.astype(np.float32)}
     write_atomically(Path(job.survey_path), lambda tmp: save_npz(
         tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
         spacings=spacings, picks=budget, filled=filled, covers=covers, **arrays))
