@@ -159,6 +159,13 @@ def test_non_finite_ply_coordinates(tmp_path, value):
     fails_cleanly(tmp_path, [write_ply(tmp_path / "in.ply", xyz)], "in.ply", "NaN or infinite")
 
 
+def test_a_ply_too_wide_for_the_millimetre_grid(tmp_path):
+    """3,000 km along x does not fit LAS's 32-bit integers at 1 mm steps: said before any point is read."""
+    xyz = scattered(100)
+    xyz[5, 0] += 3e6
+    fails_cleanly(tmp_path, [write_ply(tmp_path / "in.ply", xyz)], "in.ply", "32-bit grid")
+
+
 @pytest.mark.parametrize("suffix", [".laz", ".ply"])
 def test_zero_points(tmp_path, suffix):
     source = tmp_path / f"empty{suffix}"
