@@ -26,14 +26,15 @@ def local_workers(requested: int) -> int:
 
 LIGHT_ON_GIL_SCALE = 3  # how many times more points a method light on the GIL runs in-process: with 2 workers
 # threads and a cluster tied at about 10M points for `fps` (street, 54.6 s and 54.4 s) and about 4M for `learned`
-# (street, 39.3 and 37.7 s); `voxel` still won on threads at 10M (36.6 s against 43.4)
+# (street, 39.3 and 37.7 s); `voxel` won on threads at 10M (36.6 s against 43.4) before its tiles went to processes
 
 
 TILE_PROCESS_SCALE = 7  # how many times more points run in-process when the tiles' surveys and picks go to worker
 # processes (pipeline.engine.processes), where the GIL no longer holds them back: on a 2-core machine that beat a
 # local cluster on the street in time and memory at every size measured, up to 20M (`learned` at 6M 13.9-14.2 s and
 # 391-411 MiB against 16.3-17.0 s and 462-469 MiB, at 20M 48.1 s / 408 against 53.8 / 482; `fps` at 20M 19.9 s /
-# 347 against 25.5 / 443). Larger scans keep a local cluster, whose workers' memory limit then matters most.
+# 347 against 25.5 / 443; `voxel` at 10M 10.5-10.7 s / 432 against 15.3 / 411). Larger scans keep a local cluster,
+# whose workers' memory limit then matters most.
 
 
 def runs_in_process(points: int, limit: int, threads: int, light_on_gil: bool = False,
