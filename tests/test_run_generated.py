@@ -411,6 +411,38 @@ def test_a_cell_over_the_tile_limit_is_split_into_tiles_under_it(tmp_path, metho
     assert near.sum() >= 0.5 * 0.1 * 4_000  # the split standpoint keeps its share, not a seam-starved few
 
 
+@pytest.mark.parametrize("method", ["fps", "learned"])
+def test_a_pick_step_without_halo_loads_exactly_its_tiles_points_beside_split_cells(tmp_path, monkeypatch, method):
+    """A load without halo takes every row of its slices as core where the tile is whole cells (no cell
+    lookups): those slices must hold its own points and no other, also where a neighbouring cell is split
+    into sub-cell tiles, and the sub-cell tiles theirs."""
+    import pipeline.engine.runner as runner
+    from pipeline.config import RunConfig
+
+    loaded: list[tuple[int, int]] = []
+    plans = []
+    simplify, bucket = runner.simplify_tile, runner.bucket_scan
+
+    def planned(*args, **kwargs):
+        found = bucket(*args, **kwargs)
+        plans.append(found[0])
+        return found
+
+    def counted(job, plan):
+        outcome = simplify(job, plan)
+        loaded.append((outcome.tile_id, outcome.points))
+        return outcome
+
+    monkeypatch.setattr(runner, "simplify_tile", counted)
+    monkeypatch.setattr(runner, "bucket_scan", planned)
+    scan = station_scan(tmp_path / "station.las", 3.5, 0.3)
+    runner.run_scan([scan], tmp_path / "out.las", RunConfig(ratio=0.1, method=method, tile_size=8.0,
+                                                             max_tile_points=2_000, workers=1))
+    (plan,) = plans
+    assert any(tile.sub is not None for tile in plan.tiles) and any(tile.sub is None for tile in plan.tiles)
+    assert sorted(loaded) == [(tile_id, tile.count) for tile_id, tile in enumerate(plan.tiles)]
+
+
 def test_a_sub_cell_over_the_tile_limit_is_named_with_the_tile_size_that_splits_it(tmp_path):
     """A crowded cell is split down to sub-cells (tile size / 512) and no further: 4,000 points within
     one sub-cell stay one tile over the limit, and the run says so, and which tile size would split it."""
