@@ -1,6 +1,7 @@
 """End to end on scans made here: seams, determinism across worker counts, PLY ingest."""
 from __future__ import annotations
 
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import laspy
@@ -183,31 +184,47 @@ def test_tiles_surveyed_and_picked_in_worker_processes_give_the_threads_bytes(tm
     assert elsewhere.read_bytes() == threads.read_bytes()
 
 
-@pytest.mark.parametrize("method", ["learned", "stratified"])
-def test_a_surveyed_fills_picks_load_the_core_alone_and_give_the_bytes_of_a_load_with_its_halo(
-        tmp_path, dense_patch, monkeypatch, method):
-    """The halo serves a fill's survey (its loss, saved for the core); its fill and hole cover pick among and
-    measure the core alone, so its picks load no halo: every tile's pick step loads its cells' points only,
-    and the file is the one a pick step that loaded the halo writes."""
-    import pipeline.engine.runner as runner
-    from model.registry import REGISTERED
+@dataclass
+class PickLoads:
+    """What an in-process run planned (its tile plans, one per run) and how many points each pick step loaded
+    ({picks_read_halo: [(tile id, points)]})."""
 
-    loaded: dict[bool, list[tuple[int, int]]] = {True: [], False: []}
-    plans = []
+    plans: list = field(default_factory=list)
+    loaded: dict = field(default_factory=lambda: {True: [], False: []})
+
+
+@pytest.fixture
+def pick_loads(monkeypatch) -> PickLoads:
+    """Record the runs' tile plans and their pick steps' loads (pipeline.engine.runner's own calls wrapped)."""
+    import pipeline.engine.runner as runner
+
+    seen = PickLoads()
     simplify, plan_tiles = runner.simplify_tile, runner.bucket_scan
 
     def planned(*args, **kwargs):
         found = plan_tiles(*args, **kwargs)
-        plans.append(found[0])
+        seen.plans.append(found[0])
         return found
 
     def counted(job, plan):
         outcome = simplify(job, plan)
-        loaded[type(job.simplifier).picks_read_halo].append((outcome.tile_id, outcome.points))
+        seen.loaded[type(job.simplifier).picks_read_halo].append((outcome.tile_id, outcome.points))
         return outcome
 
     monkeypatch.setattr(runner, "simplify_tile", counted)
     monkeypatch.setattr(runner, "bucket_scan", planned)
+    return seen
+
+
+@pytest.mark.parametrize("method", ["learned", "stratified"])
+def test_a_surveyed_fills_picks_load_the_core_alone_and_give_the_bytes_of_a_load_with_its_halo(
+        tmp_path, dense_patch, monkeypatch, pick_loads, method):
+    """The halo serves a fill's survey (its loss, saved for the core); its fill and hole cover pick among and
+    measure the core alone, so its picks load no halo: every tile's pick step loads its cells' points only,
+    and the file is the one a pick step that loaded the halo writes."""
+    from model.registry import REGISTERED
+
+    plans, loaded = pick_loads.plans, pick_loads.loaded
     settings = dict(ratio=0.1, method=method, tile_size=4.0, seed=7, workers=1)
     core_only = tmp_path / "core.laz"
     pipeline.run(dense_patch, core_only, **settings)
@@ -412,35 +429,20 @@ def test_a_cell_over_the_tile_limit_is_split_into_tiles_under_it(tmp_path, metho
 
 
 @pytest.mark.parametrize("method", ["fps", "learned"])
-def test_a_pick_step_without_halo_loads_exactly_its_tiles_points_beside_split_cells(tmp_path, monkeypatch, method):
+def test_a_pick_step_without_halo_loads_exactly_its_tiles_points_beside_split_cells(tmp_path, pick_loads, method):
     """A load without halo takes every row of its slices as core where the tile is whole cells (no cell
     lookups): those slices must hold its own points and no other, also where a neighbouring cell is split
     into sub-cell tiles, and the sub-cell tiles theirs."""
-    import pipeline.engine.runner as runner
     from pipeline.config import RunConfig
+    from pipeline.engine.runner import run_scan
 
-    loaded: list[tuple[int, int]] = []
-    plans = []
-    simplify, bucket = runner.simplify_tile, runner.bucket_scan
-
-    def planned(*args, **kwargs):
-        found = bucket(*args, **kwargs)
-        plans.append(found[0])
-        return found
-
-    def counted(job, plan):
-        outcome = simplify(job, plan)
-        loaded.append((outcome.tile_id, outcome.points))
-        return outcome
-
-    monkeypatch.setattr(runner, "simplify_tile", counted)
-    monkeypatch.setattr(runner, "bucket_scan", planned)
     scan = station_scan(tmp_path / "station.las", 3.5, 0.3)
-    runner.run_scan([scan], tmp_path / "out.las", RunConfig(ratio=0.1, method=method, tile_size=8.0,
-                                                             max_tile_points=2_000, workers=1))
-    (plan,) = plans
+    run_scan([scan], tmp_path / "out.las", RunConfig(ratio=0.1, method=method, tile_size=8.0, max_tile_points=2_000,
+                                                      workers=1))
+    (plan,) = pick_loads.plans
     assert any(tile.sub is not None for tile in plan.tiles) and any(tile.sub is None for tile in plan.tiles)
-    assert sorted(loaded) == [(tile_id, tile.count) for tile_id, tile in enumerate(plan.tiles)]
+    loads = pick_loads.loaded[True] + pick_loads.loaded[False]  # fps reads no halo anywhere, learned's picks none
+    assert sorted(loads) == [(tile_id, tile.count) for tile_id, tile in enumerate(plan.tiles)]
 
 
 def test_a_sub_cell_over_the_tile_limit_is_named_with_the_tile_size_that_splits_it(tmp_path):
