@@ -40,7 +40,7 @@ def run(inputs: str | Path | Sequence[str | Path], output: str | Path | None = N
     `progress` shows bars at a terminal, else a line every 10 s on stderr.
     `client` reuses the caller's Dask client (no cluster started); `scheduler` (tcp://host:port) runs on
     an existing Dask cluster; otherwise a scan of at most `in_process_points` (3M at 2 workers; 9M for
-    `random`; 21M for `fps`, `voxel` and `learned`, whose tiles go to worker processes from 1M, 1M and 300k points)
+    `random`; 21M for `fps`, `voxel` and `learned`, whose tiles go to worker processes from 1M, 2M and 300k points)
     points runs on `workers` threads of this process, and a larger one on a local cluster started for the call.
     What the CLI notes on stderr (lengths converted, metres assumed, ...) comes as a `PipelineNote` warning.
     """

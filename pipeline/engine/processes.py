@@ -12,9 +12,10 @@ bcts_1..4 the simplify phase ran `learned` 5.75-5.82 -> 5.01-5.10 s (wall 7.2-7.
 memory probe) and `fps` 1.48-1.57 -> 1.40-1.46 s; `learned` on a 2.8M street 5.97-6.27 -> 5.08-5.15 s, on
 a 1.5M one 3.3 -> 2.8-2.9 s. The run's tree then peaks about twice as high (bcts `learned` 176-208 -> 395
 MiB, about a local cluster's), with the same bytes. `voxel` then gained 3 % (its simplify phase 1.23 -> 0.98 s,
-its reading 0.2 s slower) for twice the memory; measured again at 0.3.10, it gains from about 1M points as `fps`
-does (bcts_1..4 as PLY, alternated: simplify phase 1.78 -> 1.32-1.38 s, wall 2.98-3.06 -> 2.56-2.64 s; a 10M
-street 15.3 s on a cluster -> 10.5-10.7 s; the extra-bytes file's 698k a tie, lone-star's 519k 0.06 s slower).
+its reading 0.2 s slower) for twice the memory; measured again at 0.3.10 (2 cores, alternated, wall s, threads ->
+processes), it gains from about 2M points: bcts_1..4 as PLY 2.98-3.06 -> 2.56-2.64 (simplify phase 1.78 ->
+1.32-1.38), a 10M street 10.95-11.18 -> 10.48-10.50 (229 -> 380 MiB); a 2M street 2.17-2.38 -> 2.22-2.36 (a tie),
+a 1M one 1.32-1.38 -> 1.47-1.55, the extra-bytes file's 698k a tie, lone-star's 519k 0.06 s slower.
 `random` lost (1.38-1.40 -> 1.48-1.60 s): its tiles stay on threads. Reading stays on the run's threads (lazrs decodes on every core). Below a method's
 `tile_processes_from` the forkserver's start, which competes with the reading, costs what the processes save:
 with the server importing only what tiles need (139 ms; 245 with the scan reader), a 1M street ran `fps`

@@ -33,8 +33,8 @@ TILE_PROCESS_SCALE = 7  # how many times more points run in-process when the til
 # processes (pipeline.engine.processes), where the GIL no longer holds them back: on a 2-core machine that beat a
 # local cluster on the street in time and memory at every size measured, up to 20M (`learned` at 6M 13.9-14.2 s and
 # 391-411 MiB against 16.3-17.0 s and 462-469 MiB, at 20M 48.1 s / 408 against 53.8 / 482; `fps` at 20M 19.9 s /
-# 347 against 25.5 / 443; `voxel` at 10M 10.5-10.7 s / 432 against 15.3 / 411). Larger scans keep a local cluster,
-# whose workers' memory limit then matters most.
+# 347 against 25.5 / 443; `voxel` at 10M 10.5 s / 380 against 15.3 / 411, and 11.0-11.2 / 229 on threads). Larger
+# scans keep a local cluster, whose workers' memory limit then matters most.
 
 
 def runs_in_process(points: int, limit: int, threads: int, light_on_gil: bool = False,
