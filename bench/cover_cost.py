@@ -73,7 +73,8 @@ def cover_rows(name: str, xyz: np.ndarray, ratio: float) -> list[str]:
     rows = []
     for label, kept in selections.items():
         ce, p99, largest, fill_curvature = scored(xyz, curvature, kept, count if kept is whole else len(fill))
-        rows.append(f"| {name} | {label} | {len(kept):,} | {ce:.5f} | {p99:.4g} | {largest:.4g} | {fill_curvature:.4f} |")
+        rows.append(f"| {name} | {label} | {len(kept):,} | {ce:.5f} | {p99:.4g} | {largest:.4g} "
+                    f"| {fill_curvature:.4f} |")
         print(rows[-1], flush=True)
     return rows
 
