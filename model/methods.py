@@ -88,8 +88,9 @@ class Voxel(Method):
     reads_halo: ClassVar[bool] = False
     spaces_evenly: ClassVar[bool] = True
     light_on_gil: ClassVar[bool] = True
-    tile_processes_from: ClassVar[int | None] = 2_000_000  # bcts (2.8M): simplify 1.78 -> 1.35 s; a 10M street
-                                                           # 4 % faster than threads; a tie at 2M, 0.15 s lost at 1M
+    tile_processes_from: ClassVar[int | None] = 2_000_000  # its many numpy calls per tile contend for the GIL on
+    # threads: bcts (2.8M) simplified 1.78 -> 1.35 s in processes, a 10M street 4 % faster; a tie at 2M, and at 1M
+    # the forkserver's start (beside the reading) cost 0.15 s more than the processes saved
 
     def __post_init__(self) -> None:
         super().__post_init__()

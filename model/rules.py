@@ -34,9 +34,13 @@ def take_records(records: np.ndarray, index: np.ndarray) -> np.ndarray:
     return np.take(record_bytes(records), index, axis=0).view(records.dtype).reshape(-1)
 
 
-def grid_ints(xyz: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> np.ndarray:
-    """(n, 3) float64 integers of the grid steps nearest to (n, 3) coordinates (before any int32 check)."""
-    return np.rint((xyz - offsets) / scales)
+def grid_ints(xyz: np.ndarray, scales: np.ndarray | float, offsets: np.ndarray | float) -> np.ndarray:
+    """(n, 3) float64 integers of the grid steps nearest to (n, 3) coordinates (before any int32 check), or
+    (n,) of one axis' coordinates with its scale and offset: rint((xyz - offsets) / scales), as laspy's scaled
+    assignment rounds, worked out in place on one float64 copy."""
+    steps = np.subtract(xyz, offsets, dtype=np.float64)
+    np.divide(steps, scales, out=steps)
+    return np.rint(steps, out=steps)
 
 
 def column_min(values: np.ndarray) -> np.ndarray:

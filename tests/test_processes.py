@@ -21,13 +21,15 @@ from pipeline.progress import Progress
 
 def test_only_a_big_scan_of_a_method_with_heavy_tiles_gives_them_to_processes():
     """fps (fpsample holds the GIL) from 1M points, voxel from 2M and the fill family (their surveys and hole
-    covers hold it a fair share) from 300k: measured faster in processes from there (voxel's simplify phase on
-    bcts_1..4 1.78 -> 1.35 s, a tie on a 2M street, 0.15 s lost on a 1M one); random lost; tcp and the paper's network were not measured (the network would import torch in each process)."""
+    covers hold it a fair share) from 300k: measured faster in processes from about there (voxel: a tie on a 2M
+    street, 0.15 s lost on a 1M one, bcts_1..4's 2.8M simplified 1.78 -> 1.35 s); random lost; tcp and the
+    paper's network were not measured (the network would import torch in each process)."""
     from model.registry import REGISTERED
 
     starts = {name: method.tile_processes_from for name, method in REGISTERED.items()
               if method.tile_processes_from is not None}
-    assert starts == {"fps": 1_000_000, "voxel": 2_000_000, "stratified": 300_000, "stratified-detail": 300_000, "learned": 300_000}
+    assert starts == {"fps": 1_000_000, "voxel": 2_000_000, "stratified": 300_000, "stratified-detail": 300_000,
+                      "learned": 300_000}
     assert use_tile_processes(300_000, 2, 300_000)
     assert not use_tile_processes(299_999, 2, 300_000)
     assert not use_tile_processes(300_000, 1, 300_000)  # one thread: nothing to run beside it

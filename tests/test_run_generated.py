@@ -3,6 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import laspy
 import numpy as np
@@ -12,7 +13,9 @@ from plyfile import PlyData, PlyElement
 from scipy.spatial import cKDTree
 
 import pipeline
+from pipeline.engine.tasks import TileJob, TileOutcome
 from pipeline.engine.threads import available_cores
+from tiling.plan import TilePlan
 
 
 def write_dense_patch(path: Path, n: int = 120_000, seed: int = 0) -> None:
@@ -158,11 +161,12 @@ def test_one_and_two_workers_and_this_process_give_identical_bytes(tmp_path, den
 
 
 @pytest.mark.skipif(available_cores() < 2, reason="one core: a run has one task thread and picks on it")
-@pytest.mark.parametrize("method", ["fps", "learned"])
+@pytest.mark.parametrize("method", ["fps", "voxel", "learned"])
 def test_tiles_surveyed_and_picked_in_worker_processes_give_the_threads_bytes(tmp_path, dense_patch, monkeypatch,
                                                                                method):
     """From the method's tile_processes_from (here 0) an in-process run surveys and picks its tiles in forkserver
-    processes (for fps the survey counts voxels, for learned it also predicts the fill loss): the same file."""
+    processes (for fps and voxel the survey counts voxels, for learned it also predicts the fill loss): the same
+    file."""
     import pipeline.engine.processes as processes
     from model.registry import REGISTERED
 
@@ -189,8 +193,8 @@ class PickLoads:
     """What an in-process run planned (its tile plans, one per run) and how many points each pick step loaded
     ({picks_read_halo: [(tile id, points)]})."""
 
-    plans: list = field(default_factory=list)
-    loaded: dict = field(default_factory=lambda: {True: [], False: []})
+    plans: list[TilePlan] = field(default_factory=list)
+    loaded: dict[bool, list[tuple[int, int]]] = field(default_factory=lambda: {True: [], False: []})
 
 
 @pytest.fixture
@@ -201,12 +205,12 @@ def pick_loads(monkeypatch) -> PickLoads:
     seen = PickLoads()
     simplify, plan_tiles = runner.simplify_tile, runner.bucket_scan
 
-    def planned(*args, **kwargs):
+    def planned(*args: Any, **kwargs: Any) -> tuple:
         found = plan_tiles(*args, **kwargs)
         seen.plans.append(found[0])
         return found
 
-    def counted(job, plan):
+    def counted(job: TileJob, plan: TilePlan) -> TileOutcome:
         outcome = simplify(job, plan)
         seen.loaded[type(job.simplifier).picks_read_halo].append((outcome.tile_id, outcome.points))
         return outcome

@@ -74,7 +74,8 @@ def bucket_scan(client: Client | Executor, scan: Scan, pieces: list[Piece], work
 @dataclass(frozen=True)
 class TileSlices:
     """Each tile's rows as slices of the stored pieces: with the halo a method reads (`seen`), and its core
-    alone (`core`: a cover count's load, and a surveyed fill's picks, which need no halo)."""
+    alone (`core`: a cover count's load, and a surveyed fill's picks, which need no halo). A whole-cell tile's
+    core slices hold exactly its rows, which its loads take as core without looking them up (tasks.load_tile)."""
 
     seen: list[list[Slice]]
     core: list[list[Slice]]

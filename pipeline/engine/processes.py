@@ -18,8 +18,9 @@ processes), it gains from about 2M points: bcts_1..4 as PLY 2.98-3.06 -> 2.56-2.
 a 1M one 1.32-1.38 -> 1.47-1.55, the extra-bytes file's 698k a tie, lone-star's 519k 0.06 s slower.
 `random` lost (1.38-1.40 -> 1.48-1.60 s): its tiles stay on threads. Reading stays on the run's threads (lazrs
 decodes on every core). Below a method's `tile_processes_from` the forkserver's start, which competes with the
-reading, costs what the processes save: with the server importing only what tiles need (139 ms; 245 with the scan reader), a 1M street ran `fps`
-1.33-1.41 -> 1.19-1.24 s and `learned` 2.68-2.76 -> 2.56-2.68 s in processes, and the tree peaks higher (the 1M
+reading, costs what the processes save: with the server importing only what tiles need (139 ms; 245 with the
+scan reader), a 1M street ran `fps` 1.33-1.41 -> 1.19-1.24 s and `learned` 2.68-2.76 -> 2.56-2.68 s in
+processes, and the tree peaks higher (the 1M
 street's `learned` 186-228 -> 377 MiB). `fps` gains nothing below that (0.3.9, 2 cores, wall s, threads ->
 processes: lone-star's 519k 0.78-0.81 -> 0.83-0.88, the extra-bytes file's 698k 0.89-0.94 -> 0.91-1.04), but
 the fill family's tiles, whose hole cover and survey have grown, do from about 300k points: `learned` on
