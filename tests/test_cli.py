@@ -58,6 +58,20 @@ def test_the_command_line_imports_laspy_without_its_http_client_and_leaves_reque
     assert result.stdout.split() == ["True", "False", "True"]  # laspy without it, requests not loaded, importable
 
 
+@pytest.mark.parametrize("entry", ["pipeline.apps.cli", "pipeline.engine.tile_server"])
+def test_the_command_line_and_its_tile_processes_load_pyproj_only_to_parse_a_crs(entry):
+    """laspy imports pyproj up front (70-90 ms with what it brings); a scan without a CRS (a PLY) never needs it,
+    and one with a CRS is still parsed: laspy's own parsing imports it then."""
+    pytest.importorskip("pyproj")
+    probe = (f"import sys, {entry}, laspy; print('pyproj' in sys.modules); "
+             "import pyproj; from pipeline.io.crs import parsed_crs; "
+             "header = laspy.LasHeader(point_format=3, version='1.4'); header.add_crs(pyproj.CRS.from_epsg(32633)); "
+             "print(parsed_crs(header).to_epsg())")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["False", "32633"]
+
+
 def test_info_summary_and_json():
     path = shared_file("bcts_1.laz")
     text = cli("info", str(path))

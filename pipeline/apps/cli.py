@@ -12,9 +12,9 @@ from pathlib import Path
 
 import click
 
-from pipeline.apps.lean_start import import_laspy_without_http
+from pipeline.io.lean_laspy import import_laspy_lean
 
-import_laspy_without_http()  # before the imports below, which bring laspy in
+import_laspy_lean()  # before the imports below, which bring laspy in
 
 import configs  # noqa: E402
 from pipeline.apps.cli_extras import demo_command, train_command, train_detail_command  # noqa: E402

@@ -19,7 +19,11 @@ from __future__ import annotations
 import os
 import signal
 
-import pipeline.engine.tasks  # noqa: F401  (imported once here: each worker is forked with it)
+from pipeline.io.lean_laspy import import_laspy_lean
+
+import_laspy_lean()  # before the tasks' imports bring laspy in: tiles parse no CRS
+
+import pipeline.engine.tasks  # noqa: E402, F401  (imported once here: each worker is forked with it)
 
 signal.signal(signal.SIGINT, signal.default_int_handler)
 signal.signal(signal.SIGTERM, signal.SIG_IGN)

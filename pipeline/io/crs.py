@@ -3,10 +3,13 @@ length unit of its horizontal axes (lengths given in metres are converted to it)
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import laspy
 import numpy as np
-import pyproj
+
+if TYPE_CHECKING:
+    import pyproj  # imported where a WKT is parsed: a scan without a CRS never needs it (pipeline.io.lean_laspy)
 
 _AXIS_DIRECTIONS = {"x": ("east", "west"), "y": ("north", "south"), "z": ("up", "down")}
 DEGREE_SCALE = 1e-5  # a grid step this fine (about 1 m in degrees is 1e-5) only makes sense for angles
@@ -135,6 +138,8 @@ def unit_note(unit: LengthUnit, crs_name: str) -> str | None:
 
 def crs_from_wkt(wkt: str | None) -> pyproj.CRS | None:
     """A CRS as pyproj reads its WKT (a zarr output's attribute), or None without one or when pyproj cannot parse it."""
+    import pyproj
+
     try:
         return pyproj.CRS.from_wkt(wkt) if wkt else None
     except pyproj.exceptions.CRSError:
