@@ -9,10 +9,10 @@ never whole in memory; kept in --data between runs), runs each method on each, t
 run at --one-worker-size for the speed-up. Every size runs on a local Dask cluster (`in_process_points = 0`),
 so the memory check compares like with like: by default a scan up to 3M points runs on threads of one
 process, whose tree is smaller than a cluster's, and one up to 21M in it too when `fps`'s, `voxel`'s or
-`learned`'s tiles go to worker processes (`--in-process` keeps that default). Prints a Markdown table, each run's phases (`-v`), the
-disk it used (input, work folder at its largest, output) and the three checks: peak RSS flat (largest
-scan within 1.2x of the smallest), per-point cost within 1.2x from the smallest scan to the largest,
-and 2 workers >= 1.7x one worker.
+`learned`'s tiles go to worker processes (`--in-process` keeps that default). Prints a Markdown table, each
+run's phases (`-v`), the disk it used (input, work folder at its largest, output) and the three checks:
+peak RSS flat (largest scan within 1.2x of the smallest), per-point cost within 1.2x from the smallest scan
+to the largest, and 2 workers >= 1.7x one worker.
 """
 from __future__ import annotations
 

@@ -20,13 +20,13 @@ a 1M one 1.32-1.38 -> 1.47-1.55, the extra-bytes file's 698k a tie, lone-star's 
 decodes on every core). Below a method's `tile_processes_from` the forkserver's start, which competes with the
 reading, costs what the processes save: with the server importing only what tiles need (139 ms; 245 with the
 scan reader), a 1M street ran `fps` 1.33-1.41 -> 1.19-1.24 s and `learned` 2.68-2.76 -> 2.56-2.68 s in
-processes, and the tree peaks higher (the 1M
-street's `learned` 186-228 -> 377 MiB). `fps` gains nothing below that (0.3.9, 2 cores, wall s, threads ->
-processes: lone-star's 519k 0.78-0.81 -> 0.83-0.88, the extra-bytes file's 698k 0.89-0.94 -> 0.91-1.04), but
-the fill family's tiles, whose hole cover and survey have grown, do from about 300k points: `learned` on
-lone-star 1.59-1.69 -> 1.50-1.52, bcts_1's 532k 1.37-1.38 -> 1.32-1.34, the extra-bytes file 1.70-1.76 ->
-1.56-1.65, three lone-star pieces' 410k 1.80-1.82 -> 1.68-1.72, two pieces' 277k 1.33-1.39 -> 1.32-1.36 (a tie;
-`stratified` 0.96-1.02 either way), one piece's 155k 0.86-0.91 -> 0.96-0.98 and autzen's 110k 0.55 -> 0.64.
+processes, and the tree peaks higher (the 1M street's `learned` 186-228 -> 377 MiB). `fps` gains nothing below
+that (0.3.9, 2 cores, wall s, threads -> processes: lone-star's 519k 0.78-0.81 -> 0.83-0.88, the extra-bytes
+file's 698k 0.89-0.94 -> 0.91-1.04), but the fill family's tiles, whose hole cover and survey have grown, do
+from about 300k points: `learned` on lone-star 1.59-1.69 -> 1.50-1.52, bcts_1's 532k 1.37-1.38 -> 1.32-1.34, the
+extra-bytes file 1.70-1.76 -> 1.56-1.65, three lone-star pieces' 410k 1.80-1.82 -> 1.68-1.72, two pieces' 277k
+1.33-1.39 -> 1.32-1.36 (a tie; `stratified` 0.96-1.02 either way), one piece's 155k 0.86-0.91 -> 0.96-0.98 and
+autzen's 110k 0.55 -> 0.64.
 """
 from __future__ import annotations
 
