@@ -67,6 +67,31 @@ def test_a_pool_that_loses_a_worker_starts_afresh_and_runs_its_tasks_again(tmp_p
     assert results == [0, 2, 4, 6, 8, 10]
 
 
+RECEIVED: list[object] = []  # what a process's kept_and_counted calls received: alive, so no id is reused
+
+
+def kept_and_counted(item: int, shared: dict[str, list[int]]) -> tuple[int, int, int]:
+    """The item, the last of the shared value's cells, and how many distinct shared objects this process has
+    received so far."""
+    RECEIVED.append(shared)
+    return item, shared["cells"][-1], len({id(value) for value in RECEIVED})
+
+
+def test_a_value_every_tile_task_shares_reaches_each_worker_process_once():
+    """The plan goes to a tile process once, not with each of its tasks (bcts_1..4's plan is 68 KB, for 91
+    tasks a phase), and its file goes with the executor."""
+    plan = {"cells": list(range(10_000))}
+    with ThreadPoolExecutor(1) as threads, TilesElsewhere(threads, 2, tile_work=(kept_and_counted,)) as executor:
+        results = map_tasks(executor, kept_and_counted, list(range(12)), plan, desc="simplify",
+                            progress=Progress("off"))
+        assert executor.folder is not None
+        folder = Path(executor.folder.name)
+        assert len(list(folder.iterdir())) == 1
+    assert [(item, last) for item, last, _ in results] == [(item, 9_999) for item in range(12)]
+    assert {distinct for _, _, distinct in results} == {1}
+    assert not folder.exists()
+
+
 def test_a_pool_that_keeps_losing_workers_ends_the_run_in_one_line():
     with ThreadPoolExecutor(1) as threads, TilesElsewhere(threads, 1, tile_work=(os._exit,)) as executor:
         with pytest.raises(PipelineError, match=rf"^simplify: worker processes died {PROCESS_LOSSES + 1} times \(killed"):

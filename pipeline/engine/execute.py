@@ -117,9 +117,11 @@ def _map_here(pool: Executor, function: Callable, items: Sequence[Any], shared: 
               progress: Progress, weight: Callable[[Any], int], cost: Callable[[Any], int] | None) -> list[Any]:
     """map_tasks on this process's task threads (and tile processes: pipeline.engine.processes): the same
     calls, in the same submission order, failures reported as a worker's are; the first failure cancels the
-    tasks not started. A pool of tile processes that loses one (killed: out of memory?) fails every task
-    it held: it is started afresh and those tasks given to it again, up to PROCESS_LOSSES times."""
+    tasks not started. Tile processes get the `shared` values once each (processes.SentOnce), not with
+    every task. A pool of tile processes that loses one (killed: out of memory?) fails every task it held:
+    it is started afresh and those tasks given to it again, up to PROCESS_LOSSES times."""
     order = [int(position) for position in submission_order(items, cost)]
+    shared = pool.shared(function, shared) if hasattr(pool, "shared") else shared  # tile processes: sent once
     futures = {pool.submit(function, items[position], *shared): position for position in order}
     results: list[Any] = [None] * len(items)
     losses = 0

@@ -33,12 +33,15 @@ from __future__ import annotations
 import ctypes
 import multiprocessing
 import os
+import pickle
 import signal
+import tempfile
 import threading
 from collections.abc import Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from contextlib import contextmanager
+from functools import lru_cache
 from multiprocessing import forkserver
 from typing import Any, Callable
 
@@ -127,10 +130,32 @@ def die_with_parent() -> None:
         os._exit(1)
 
 
+class SentOnce:
+    """A value that every task of a phase takes (the tile plan), pickled once to a file: a task sent to a tile
+    process carries the file's path, and each process reads the value from it once (read_once). Sent with
+    every task instead, bcts_1..4's 68 KB plan was pickled, piped and unpickled 91 times a phase; a plan grows
+    with the scan's extent, as does the number of tasks."""
+
+    def __init__(self, value: Any, path: str) -> None:
+        self.value = value  # this process's own, for the tasks its threads run
+        self.path = path
+
+    def __reduce__(self) -> tuple[Callable[[str], Any], tuple[str]]:
+        return read_once, (self.path,)
+
+
+@lru_cache(maxsize=4)
+def read_once(path: str) -> Any:
+    """The value a SentOnce wrote to `path`, read once in each process (each run's files have new paths)."""
+    with open(path, "rb") as file:
+        return pickle.load(file)
+
+
 class TilesElsewhere(Executor):
     """An in-process run's executor: its task threads, but each tile's survey, cover count and picks
-    (`tile_work`: survey_tile, count_cover, simplify_tile) in `workers` worker processes, which `restart` replaces when one has died.
-    Shutting it down waits for both, cancelling what has not started."""
+    (`tile_work`: survey_tile, count_cover, simplify_tile) in `workers` worker processes, which `restart`
+    replaces when one has died. Shutting it down waits for both, cancelling what has not started, and
+    removes the SentOnce files."""
 
     def __init__(self, threads: Executor, workers: int,
                  tile_work: tuple[Callable[..., Any], ...] = (survey_tile, count_cover, simplify_tile)) -> None:
@@ -138,6 +163,23 @@ class TilesElsewhere(Executor):
         self.workers = workers
         self.tile_work = tile_work
         self.processes = tile_processes(workers)
+        self.folder: tempfile.TemporaryDirectory[str] | None = None  # the SentOnce files, made on the first
+        self.sent: dict[int, SentOnce] = {}  # by id of the value, which each SentOnce keeps alive
+
+    def shared(self, function: Callable[..., Any], values: tuple[Any, ...]) -> tuple[Any, ...]:
+        """The arguments that every call of `function` takes after its item, as this executor sends them:
+        as SentOnce files where `function` is tile work, as they are where it runs on the threads."""
+        return tuple(self._sent_once(value) for value in values) if function in self.tile_work else values
+
+    def _sent_once(self, value: Any) -> SentOnce:
+        if id(value) not in self.sent:
+            if self.folder is None:
+                self.folder = tempfile.TemporaryDirectory(prefix="pipeline-shared-")
+            path = os.path.join(self.folder.name, f"{len(self.sent)}.pickle")
+            with open(path, "wb") as file:
+                pickle.dump(value, file, protocol=pickle.HIGHEST_PROTOCOL)
+            self.sent[id(value)] = SentOnce(value, path)
+        return self.sent[id(value)]
 
     def submit(self, fn: Callable[..., Any], /, *args: Any, **kwargs: Any) -> Future:
         """The call's future; a pool already broken gives one failed with BrokenProcessPool, as its running
@@ -159,3 +201,5 @@ class TilesElsewhere(Executor):
     def shutdown(self, wait: bool = True, *, cancel_futures: bool = False) -> None:
         self.threads.shutdown(wait, cancel_futures=cancel_futures)
         self.processes.shutdown(wait, cancel_futures=cancel_futures)
+        if self.folder is not None:
+            self.folder.cleanup()
