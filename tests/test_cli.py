@@ -58,6 +58,16 @@ def test_the_command_line_imports_laspy_without_its_http_client_and_leaves_reque
     assert result.stdout.split() == ["True", "False", "True"]  # laspy without it, requests not loaded, importable
 
 
+def test_the_command_line_leaves_the_scoring_and_report_code_to_the_commands_that_use_them():
+    """`pipeline run` needs neither (with model.metrics they were 13-18 ms of every run); `report` imports them."""
+    probe = ("import sys, pipeline.apps.cli; "
+             "print(*(name in sys.modules for name in ('pipeline.apps.scoring', 'pipeline.apps.visual.report_region', "
+             "'model.metrics')))")
+    result = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["False"] * 3
+
+
 @pytest.mark.parametrize("entry", ["pipeline.apps.cli", "pipeline.engine.tile_server"])
 def test_the_command_line_and_its_tile_processes_load_pyproj_only_to_parse_a_crs(entry):
     """laspy imports pyproj up front (70-90 ms with what it brings); a scan without a CRS (a PLY) never needs it,

@@ -18,8 +18,7 @@ import_laspy_lean()  # before the imports below, which bring laspy in
 
 import configs  # noqa: E402
 from pipeline.apps.cli_extras import demo_command, train_command, train_detail_command  # noqa: E402
-from pipeline.apps.scoring import DEFAULT_SAMPLE  # noqa: E402
-from pipeline.apps.visual.report_region import COLORS, parse_region  # noqa: E402
+from pipeline.apps.defaults import COLORS, DEFAULT_SAMPLE  # noqa: E402
 from pipeline.config import METHODS, build_config, parse_list, parse_parameters  # noqa: E402
 from pipeline.engine.stop_guard import STOP_GRACE_S  # noqa: E402
 from pipeline.errors import Interrupted, PipelineError, Terminated, file_system_error, signal_exit_code  # noqa: E402
@@ -305,6 +304,7 @@ def report_command(source: Path, outputs: tuple[Path, ...], page: Path, region: 
     """One self-contained HTML page judging OUTPUT(s) against SOURCE: a before/after 3-D view of one region,
     a kept-to-expected density map per output, the metrics with units, and how each output was made."""
     from pipeline.apps.report import write_report
+    from pipeline.apps.visual.report_region import parse_region
 
     click.echo(write_report(source, list(outputs), page, parse_region(region) if region else None, color, sample))
 

@@ -17,9 +17,10 @@ import numpy as np
 
 from model.geometry import point_features
 from model.registry import METHODS
+from pipeline.apps.defaults import DEFAULT_SAMPLE
 from pipeline.apps.report import density_png_path, render_report
-from pipeline.apps.scoring import (DEFAULT_SAMPLE, METRIC_COLUMNS, Reference, Score, markdown_table, metric_cells,
-                                   prepare_reference, reference_json, sample_note, score, score_json)
+from pipeline.apps.scoring import (METRIC_COLUMNS, Reference, Score, markdown_table, metric_cells, prepare_reference,
+                                   reference_json, sample_note, score, score_json)
 from pipeline.apps.visual.plots import Panel, metric_plot, region_view
 from pipeline.config import build_config
 from pipeline.engine.execute import cluster

@@ -12,10 +12,11 @@ from typing import Sequence
 
 import plotly.graph_objects as go
 
-from pipeline.apps.scoring import DEFAULT_SAMPLE, Reference, Score, evaluate, sample_note
+from pipeline.apps.defaults import COLORS, DEFAULT_SAMPLE
+from pipeline.apps.scoring import Reference, Score, evaluate, sample_note
 from pipeline.apps.visual.density_map import density_maps
 from pipeline.apps.visual.density_plots import density_figure, density_png
-from pipeline.apps.visual.report_region import COLORS, Region, find_region, sample_region
+from pipeline.apps.visual.report_region import Region, find_region, sample_region
 from pipeline.apps.visual.report_tables import metrics_table, provenance_table, spread_table
 from pipeline.apps.visual.view3d import SYNC_CAMERAS, ColourScale, region_figure
 from pipeline.errors import PipelineError

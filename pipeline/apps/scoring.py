@@ -17,12 +17,12 @@ import numpy as np
 
 from model.geometry import PointFeatures, point_features
 from model.metrics import Quality, quality
+from pipeline.apps.defaults import DEFAULT_SAMPLE
 from pipeline.errors import PipelineError
 from pipeline.io.crs import LengthUnit
 from pipeline.io.points import Cells, chunk_count, covering_grid, length_unit_of, load_xyz, point_count, xyz_chunks
 from pipeline.progress import Progress
 
-DEFAULT_SAMPLE = 200_000
 SAMPLE_CELLS = 256
 SAMPLE_MARGIN = 0.1  # of a cell side: how far around the sample cells both clouds are loaded
 # (column title, Quality field, format): one definition for the eval and compare tables

@@ -15,7 +15,6 @@ from pipeline.errors import PipelineError
 from pipeline.io.points import CHUNK, covering_grid, point_count, xyz_chunks, zarr_group
 from pipeline.io.scan import Scan
 
-COLORS = ("elevation", "classification", "rgb")
 REGION_POINTS = 20_000  # source points per cell of the grid the automatic region is a cell of: a building or two
 RGB = ("red", "green", "blue")
 
