@@ -114,3 +114,25 @@ def test_ply_coordinates_land_on_the_grid_as_laspys_scaled_assignment_puts_them(
     got = source.read(0, len(xyz))
     for name in "XYZ":
         np.testing.assert_array_equal(got[name], expected.array[name])
+
+
+@pytest.mark.parametrize("batch_rows", [700, 2_500, 200_000])
+def test_a_laz_output_holds_every_tiles_records_in_order_whatever_the_compression_batch(tmp_path, monkeypatch,
+                                                                                        batch_rows):
+    """Tiles' parts are joined into batches so lazrs compresses whole chunks side by side (pipeline.io.writers):
+    batches that split the parts unevenly, or one that holds them all, still write every record once, in order."""
+    from pipeline.io import writers
+    from pipeline.io.output_meta import OutputMeta
+    from tiling.assemble import TilePart
+
+    las = random_scan(6, n=5_000)
+    sizes = [0, 1, 450, 999, 3, 1_547, 2_000]  # 5,000 in all, an empty tile among them
+    cuts = np.cumsum([0, *sizes])
+    parts = [TilePart(tile, (0.0, 0.0, 1.0, 1.0), las.points.array[cuts[tile]:cuts[tile + 1]])
+             for tile in range(len(sizes))]
+    monkeypatch.setattr(writers, "COMPRESS_ROWS", batch_rows)
+    out = tmp_path / "batched.laz"
+    written = writers.write_output(out, las.header, 5_000, iter(parts), OutputMeta(None, [], 1.0, "random", "test"))
+    assert written == 5_000
+    assert np.array_equal(laspy.read(out).points.array, las.points.array)
+    assert [len(batch) for batch in writers.batched((p.records for p in parts), 2_500)] == [3_000, 2_000]  # a tail

@@ -3,9 +3,10 @@ from __future__ import annotations
 
 import io
 from pathlib import Path
-from typing import Iterable
+from typing import Iterable, Iterator
 
 import laspy
+import numpy as np
 
 from pipeline.errors import PipelineError, file_system_error
 from pipeline.io.atomic import atomic_output
@@ -49,6 +50,25 @@ def write_output(path: Path, header: laspy.LasHeader, total: int, parts: Iterabl
     return written
 
 
+COMPRESS_ROWS = 200_000  # records per LAZ write: four of lazrs's 50k-point chunks, compressed side by side
+# (283k points of bcts in 3k-point tiles: 98-106 ms in one call per tile, 62-72 ms so, the same bytes)
+
+
+def batched(records: Iterable[np.ndarray], rows: int) -> Iterator[np.ndarray]:
+    """The records (structured arrays of one dtype) joined into arrays of at least `rows` rows (the last
+    may hold fewer), in order: the writer's memory grows by one batch, not with the output."""
+    pending: list[np.ndarray] = []
+    count = 0
+    for part in records:
+        pending.append(part)
+        count += len(part)
+        if count >= rows:
+            yield np.concatenate(pending) if len(pending) > 1 else pending[0]
+            pending, count = [], 0
+    if pending:
+        yield np.concatenate(pending) if len(pending) > 1 else pending[0]
+
+
 class RecordingFile(io.FileIO):
     """A file opened for writing that keeps the OSError of a failed write (a full disk): lazrs reports
     one only as 'IoError: Failed to call write', which names neither the cause nor the file."""
@@ -66,16 +86,19 @@ class RecordingFile(io.FileIO):
 
 
 def _write_las(path: Path, header: laspy.LasHeader, parts: Iterable[TilePart], compress: bool) -> int:
-    """Stream the parts into a LAS/LAZ file, then the input's EVLRs; laspy fills in count and bounds on close."""
+    """Stream the parts into a LAS/LAZ file, then the input's EVLRs; laspy fills in count and bounds on close.
+    LAZ is given COMPRESS_ROWS records at a time: lazrs compresses the whole chunks of one call in parallel,
+    and a tile's few thousand complete none alone."""
     written = 0
     evlrs = header.evlrs
     raw = RecordingFile(path)
+    records = (part.records for part in parts)
     try:
         with io.BufferedWriter(raw) as stream, \
                 laspy.open(stream, mode="w", header=header, do_compress=compress, closefd=False) as writer:
-            for part in parts:
-                writer.write_points(laspy.PackedPointRecord(part.records, header.point_format))
-                written += len(part.records)
+            for batch in batched(records, COMPRESS_ROWS) if compress else records:
+                writer.write_points(laspy.PackedPointRecord(batch, header.point_format))
+                written += len(batch)
             if evlrs:
                 writer.write_evlrs(evlrs)
     except Exception:
