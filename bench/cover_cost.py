@@ -28,7 +28,7 @@ sys.path.insert(0, str(HERE.parent))
 from quality import DEFAULT_DATA, load_scan, xyz_of  # noqa: E402
 
 from model.geometry import point_features  # noqa: E402
-from model.metrics import nearest  # noqa: E402
+from model.metrics import feature_error, nearest  # noqa: E402
 from model.rules import kept_count  # noqa: E402
 from model.selection import Tile  # noqa: E402
 from model.stratified import (COVER_SPACINGS, filled_and_covered, hole_cover, nearest_distance,  # noqa: E402
@@ -41,8 +41,8 @@ def scored(xyz: np.ndarray, curvature: np.ndarray, kept: np.ndarray, fill: int) 
     kept_curvature = point_features(xyz[kept]).mean_curvature
     match = nearest(xyz[kept], xyz)
     distance = np.sqrt(match.sq_dist)
-    ce = float(np.sqrt(np.mean(np.square(curvature - kept_curvature[match.index]))))
-    return ce, float(np.quantile(distance, 0.99)), float(distance.max()), float(kept_curvature[:fill].mean())
+    return (feature_error(curvature, kept_curvature, match.index), float(np.quantile(distance, 0.99)),
+            float(distance.max()), float(kept_curvature[:fill].mean()))
 
 
 def cover_rows(name: str, xyz: np.ndarray, ratio: float) -> list[str]:
