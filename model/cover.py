@@ -27,13 +27,12 @@ def cover_order(points: np.ndarray, count: int) -> np.ndarray:
     return fps_order(np.ascontiguousarray(points, dtype=np.float32), min(count, len(points)), 0)
 
 
-def insertion_radii(points: np.ndarray, count: int) -> np.ndarray:
-    """(m,) for the picks of cover_order(points, count): each pick's distance to the picks before it (inf for
-    the first). Worked out in doubling
+def insertion_radii(points: np.ndarray, picks: np.ndarray) -> np.ndarray:
+    """(m,) for `picks` (m,), the first picks of cover_order(points, ...): each pick's distance to the picks
+    before it (inf for the first). Worked out in doubling
     blocks: a pick's nearest among the picks before its block (one tree per block), and among the
     EARLIER_NEIGHBOURS nearest of its own block those before it; where its nearest earlier pick is in its
     block but not among those (rare), the value is an upper bound, which only ever asks for more picks."""
-    picks = cover_order(points, count)
     xyz = np.ascontiguousarray(points[picks], dtype=np.float64)
     gaps = np.full(len(picks), np.inf)
     first = 1
@@ -49,19 +48,23 @@ def insertion_radii(points: np.ndarray, count: int) -> np.ndarray:
     return gaps
 
 
-def cover_counts(points: np.ndarray, count: int, radii: np.ndarray, finest: float | None = None) -> np.ndarray:
+def cover_counts(points: np.ndarray, count: int, radii: np.ndarray, finest: float | None = None,
+                 picks: np.ndarray | None = None) -> np.ndarray:
     """(g,) for each of `radii` (g,) the number of cover_order picks that leave no point of
     `points` (n, 3) farther than it (a greedy cover: 1.7-2.1x fewer picks than voxels of that edge), or -1
     where the first `count` picks, all that is sampled, are too few. With `finest`, more are sampled (as
     many again as a surface would need, the sampling redone) until they cover at `finest` or every point
-    is sampled: a tile sparse for a run's hole radius needs more than its share of the count there."""
+    is sampled: a tile sparse for a run's hole radius needs more than its share of the count there. `picks`:
+    cover_order(points, count), if the caller has it."""
     if len(points) == 0:
         return np.zeros(len(radii), dtype=np.int64)
     if count <= 0 and finest is None:
         return np.full(len(radii), -1, dtype=np.int64)
     sampled = min(max(count, 1), len(points))
     while True:
-        shrinking = np.minimum.accumulate(insertion_radii(points, sampled))  # the true radii only shrink
+        if picks is None or len(picks) != sampled:
+            picks = cover_order(points, sampled)
+        shrinking = np.minimum.accumulate(insertion_radii(points, picks))  # the true radii only shrink
         if finest is None or sampled == len(points) or shrinking[-1] <= finest or not finest > 0:
             break
         sampled = grown_sample(sampled, float(shrinking[-1]), finest, len(points))

@@ -25,8 +25,9 @@ def largest_gap(xyz: np.ndarray, picks: np.ndarray) -> float:
 
 def test_insertion_radii_are_each_picks_distance_to_the_picks_before_it():
     xyz = plane_with_strays()
-    gaps = insertion_radii(xyz, 1_500)
-    picks = xyz[fps_order(xyz.astype(np.float32), 1_500, 0)]
+    order = fps_order(xyz.astype(np.float32), 1_500, 0)
+    gaps = insertion_radii(xyz, order)
+    picks = xyz[order]
     brute = [np.inf] + [float(np.sqrt(((picks[:k] - picks[k]) ** 2).sum(axis=1)).min()) for k in range(1, 1_500)]
     np.testing.assert_allclose(gaps, brute)
 

@@ -31,6 +31,7 @@ from tiling.assemble import level_parts, seam_rejections
 from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
 from tiling.budgets import (count_at, coverage_weights, even_spacing, grouped_budgets, hole_voxels, nested_budgets,
                             pooled_median, radius_grid, saliency_weights)
+from tiling.chamfer_bound import CHAMFER_BOUND, bounded_radius, estimated_chamfer
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice
 
@@ -162,15 +163,44 @@ class ScanFill:
 
 
 def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray, target: int,
-              cover_spacings: float, strength: float = 1.0) -> tuple[np.ndarray, ScanFill]:
+              cover_spacings: float, strength: float,
+              planned: Callable[[float, np.ndarray], np.ndarray], lowest: float) -> tuple[np.ndarray, ScanFill]:
     """Tile weights for the budgets and the fill settings that make tiles keep points as one stratified
     pass over the whole scan would: weights 1 + strength x loss / the scan's mean loss, and a hole radius of
     `cover_spacings` times the scan's typical pick spacing, but never finer than the even spacing `target`
-    points can cover (below it the floors would exceed the target and tiles cut their hole cover short)."""
-    weights, scales = saliency_weights(np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys]),
-                                       np.array([s.loss_sum for s in surveys]), strength)
+    points can cover (below it the floors would exceed the target and tiles cut their hole cover short),
+    narrowed, down to `lowest` at most, where the run's Chamfer bound asks (tiling.chamfer_bound) for the
+    (tiles,) budgets `planned(radius, weights)` gives at the default's weights (strength 1: the radius is the
+    default's at any strength)."""
+    counts, levels = np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys])
+    loss_sums = np.array([s.loss_sum for s in surveys])
+    weights, scales = saliency_weights(counts, levels, loss_sums, strength)
     spacing = pooled_median([s.spacings for s in surveys], np.array([s.picks for s in surveys]))
-    return weights, ScanFill(scales, max(cover_spacings * spacing, even_spacing(occupied, sizes, target)))
+    widest = max(cover_spacings * spacing, even_spacing(occupied, sizes, target))
+    default_weights = saliency_weights(counts, levels, loss_sums)[0]
+    radius = chamfer_radius(surveys, lambda r: planned(r, default_weights), widest, min(lowest, widest))
+    return weights, ScanFill(scales, radius)
+
+
+def chamfer_radius(surveys: list[TileSurvey], budgets_at: Callable[[float], np.ndarray], widest: float,
+                   lowest: float) -> float:
+    """The widest hole radius in [lowest, widest] at which the scan's Chamfer distance, estimated from the
+    tiles' surveys (tiling.chamfer_bound), is at most CHAMFER_BOUND x that of as many farthest point picks:
+    each tile's trial fill stretched from its share of the count to the budget `budgets_at(radius)` ((tiles,))
+    gives it there."""
+    measured = np.array([len(survey.gaps) > 0 for survey in surveys])
+    if not measured.any():
+        return widest
+    gaps = np.array([survey.gaps for survey in surveys if len(survey.gaps)])
+    counts = np.array([survey.core_count for survey in surveys], dtype=np.float64)[measured]
+    shares = np.array([survey.picks for survey in surveys], dtype=np.float64)[measured]
+    even = np.array([survey.even_chamfer for survey in surveys])[measured]
+
+    def estimate(radius: float) -> float:
+        stretch = np.sqrt(shares / np.maximum(budgets_at(radius), 1e-9)[measured])
+        return estimated_chamfer(gaps, stretch, counts, radius)
+
+    return bounded_radius(estimate, CHAMFER_BOUND * float((even * counts).sum() / counts.sum()), widest, lowest)
 
 
 def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, counts: np.ndarray,
@@ -191,8 +221,9 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, 
             # saliency shared as one pass would: one fill rate for every tile, plus a point for each hole its
             # trial fill left, and at least the picks that cover it at the hole radius, so a sparse tile can
             # cover all its holes
+            planned = planned_budgets(surveys, sizes, counts, config.ratio, plan.budget_groups())
             weights, fill = scan_fill(surveys, occupied, sizes, target, simplifier.cover_spacings,
-                                      simplifier.loss_strength())
+                                      simplifier.loss_strength(), planned, feasible_radius(surveys, sizes, counts, target))
             holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes, fill.cover_radius)
             floors = cover_floors(client, plan, slices.core, surveys, sizes, fill.cover_radius, work, config, progress)
             fill = replace(fill, cover_counts=floors)
@@ -200,6 +231,36 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, 
             weights = coverage_weights(occupied, sizes, target)
     budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights, extra=holes)
     return budgets, fill, voxels
+
+
+def surveyed_floors(surveys: list[TileSurvey], sizes: np.ndarray, counts: np.ndarray, radius: float) -> np.ndarray:
+    """(tiles,) each tile's cover count at `radius` as its survey counted it, one more than its share of the
+    count where that fell short (the least it can be; cover_floors counts those tiles' own), at most its
+    (tiles,) points `counts`."""
+    floors = count_at(np.array([survey.covers for survey in surveys]), radius_grid(sizes), radius)
+    shares = np.array([survey.picks for survey in surveys])
+    return np.minimum(np.where(floors < 0, shares + 1, floors), counts)
+
+
+def planned_budgets(surveys: list[TileSurvey], sizes: np.ndarray, counts: np.ndarray, ratio: float,
+                    groups: np.ndarray) -> Callable[[float, np.ndarray], np.ndarray]:
+    """(radius, (tiles,) weights) -> the (tiles,) budgets a stratified method's tiles would get at that hole
+    radius, as scan_budgets shares them but with the surveys' floors: what the Chamfer bound is estimated on."""
+    occupied, filled = np.array([s.occupied for s in surveys]), np.array([s.filled for s in surveys])
+
+    def planned(radius: float, weights: np.ndarray) -> np.ndarray:
+        return grouped_budgets(counts, ratio, groups, floors=surveyed_floors(surveys, sizes, counts, radius),
+                               weights=weights, extra=hole_voxels(occupied, filled, sizes, radius))
+    return planned
+
+
+def feasible_radius(surveys: list[TileSurvey], sizes: np.ndarray, counts: np.ndarray, target: int) -> float:
+    """The finest radius of the cover grid whose surveyed floors (surveyed_floors) fit in `target` points:
+    below it the hole cover cannot be completed (inf where none fits)."""
+    covers, shares = np.array([survey.covers for survey in surveys]), np.array([survey.picks for survey in surveys])
+    floors = np.minimum(np.where(covers < 0, shares[:, None] + 1, covers), np.asarray(counts)[:, None])
+    fitting = np.flatnonzero(floors.sum(axis=0) <= target)
+    return float(radius_grid(sizes)[fitting[0]]) if len(fitting) else float("inf")
 
 
 def cover_floors(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], surveys: list[TileSurvey],

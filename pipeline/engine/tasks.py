@@ -7,22 +7,23 @@ local or remote cluster can run it, in any order, with the same result.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
-from model.cover import cover_counts
+from model.cover import cover_counts, cover_order
 from model.methods import Fill, Method
 from model.rules import column_mean, column_min, grid_xyz, kept_count, take_records
 from model.selection import FillContext, FillLoss, Selection, Tile, VoxelCounts
-from model.stratified import pick_spacings, trial_fill
+from model.stratified import SPACING_QUANTILES, nearest_distance, pick_spacings, trial_fill
 from pipeline.engine.classes import ClassRule, class_histogram
 from pipeline.engine.workdir import BucketedPiece, WorkDir, save_npz, write_atomically
 from tiling.bucket import SubCellIndex, bucket_by_cell, bucket_by_sub_cell
 from tiling.budgets import occupied_voxels, radius_grid
+from tiling.chamfer_bound import sample_rows
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, StoredPoints, TileStore
 
@@ -185,9 +186,11 @@ class SurveyJob:
 class TileSurvey:
     """What a tile tells the run: occupied voxels (levels,), its core count, mean absolute fill loss,
     the relative loss summed over the core, (quantiles,) spacings of a trial fill's picks, of `picks`, the
-    voxels (levels,) those picks occupy, on the core's grids (zeros for a method with no fill), and the
+    voxels (levels,) those picks occupy, on the core's grids (zeros for a method with no fill), the
     picks that cover the core at each radius of tiling.budgets.radius_grid(sizes) (-1: more than `picks`;
-    empty for a method with no fill)."""
+    empty for a method with no fill), (quantiles,) distances from a sample of core points to the trial
+    fill's nearest pick and the sample's mean squared distance to as many farthest point picks
+    (tiling.chamfer_bound; empty and 0 without a fill)."""
 
     occupied: np.ndarray
     core_count: int
@@ -197,6 +200,20 @@ class TileSurvey:
     picks: int
     filled: np.ndarray
     covers: np.ndarray
+    gaps: np.ndarray = field(default_factory=lambda: np.empty(0))
+    even_chamfer: float = 0.0
+
+
+@dataclass(frozen=True)
+class FillSurvey:
+    """A stratified method's measures of one tile's trial fill (TileSurvey's fields of the same names)."""
+
+    loss: FillLoss
+    spacings: np.ndarray
+    filled: np.ndarray
+    covers: np.ndarray
+    gaps: np.ndarray
+    even_chamfer: float
 
 
 def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
@@ -206,21 +223,38 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     core_xyz, sizes = tile.xyz if tile.core.all() else tile.xyz[tile.core], np.asarray(job.sizes)
     occupied = occupied_voxels(core_xyz, sizes)
     budget = kept_count(job.ratio, tile.core_count)
-    loss, spacings, filled = FillLoss(None, 0.0), np.empty(0), np.zeros_like(occupied)
-    covers = (cover_counts(core_xyz, budget, radius_grid(sizes)) if isinstance(job.simplifier, Fill)
-              else np.empty(0, dtype=np.int64))
-    if isinstance(job.simplifier, Fill) and budget > 0:
-        loss = job.simplifier.fill_loss(tile, budget)
-        picks = tile.xyz[trial_fill(tile, budget, loss)]
-        spacings, filled = pick_spacings(picks), occupied_voxels(picks, sizes, origin=column_min(core_xyz))
-    core_loss = None if loss.relative is None else loss.relative[tile.core]
+    fill = survey_fill(tile, core_xyz, budget, sizes, job.simplifier) if isinstance(job.simplifier, Fill) else None
+    if fill is None:
+        fill = FillSurvey(FillLoss(None, 0.0), np.empty(0), np.zeros_like(occupied), np.empty(0, dtype=np.int64),
+                          np.empty(0), 0.0)
+    core_loss = None if fill.loss.relative is None else fill.loss.relative[tile.core]
     loss_sum = float(core_loss.sum()) if core_loss is not None else 0.0
-    survey = TileSurvey(occupied, tile.core_count, loss.level, loss_sum, spacings, budget, filled, covers)
+    survey = TileSurvey(occupied, tile.core_count, fill.loss.level, loss_sum, fill.spacings, budget, fill.filled,
+                        fill.covers, fill.gaps, fill.even_chamfer)
     arrays = {} if core_loss is None else {"relative": core_loss.astype(np.float32)}
     write_atomically(Path(job.survey_path), lambda tmp: save_npz(
         tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
-        spacings=spacings, picks=budget, filled=filled, covers=covers, **arrays))
+        spacings=fill.spacings, picks=budget, filled=fill.filled, covers=fill.covers, gaps=fill.gaps,
+        even_chamfer=fill.even_chamfer, **arrays))
     return survey
+
+
+def survey_fill(tile: Tile, core_xyz: np.ndarray, budget: int, sizes: np.ndarray, simplifier: Fill) -> FillSurvey:
+    """A stratified method's trial fill of `budget` core points and what the run needs from it: its loss,
+    spacings and voxels, the farthest point picks' cover counts, and both samplings' distances from a
+    sample of the core (core_xyz: (c, 3))."""
+    if budget == 0:
+        return FillSurvey(FillLoss(None, 0.0), np.empty(0), np.zeros(len(sizes), dtype=np.int64),
+                          cover_counts(core_xyz, 0, radius_grid(sizes)), np.empty(0), 0.0)
+    even = cover_order(core_xyz, budget)
+    covers = cover_counts(core_xyz, budget, radius_grid(sizes), picks=even)
+    loss = simplifier.fill_loss(tile, budget)
+    picks = tile.xyz[trial_fill(tile, budget, loss)]
+    sample = core_xyz[sample_rows(len(core_xyz))]
+    gaps = np.quantile(nearest_distance(picks, sample), SPACING_QUANTILES)
+    even_chamfer = float(np.mean(nearest_distance(core_xyz[even], sample) ** 2))
+    return FillSurvey(loss, pick_spacings(picks), occupied_voxels(picks, sizes, origin=column_min(core_xyz)), covers,
+                      gaps, even_chamfer)
 
 
 @dataclass(frozen=True)
@@ -251,7 +285,8 @@ def load_survey(path: Path) -> TileSurvey:
     """A finished survey's summary (the per-point loss stays on disk)."""
     with np.load(path) as saved:
         return TileSurvey(saved["occupied"], int(saved["core_count"]), float(saved["level"]), float(saved["loss_sum"]),
-                          saved["spacings"], int(saved["picks"]), saved["filled"], saved["covers"])
+                          saved["spacings"], int(saved["picks"]), saved["filled"], saved["covers"], saved["gaps"],
+                          float(saved["even_chamfer"]))
 
 
 def load_fill_loss(path: Path, core: np.ndarray) -> FillLoss:

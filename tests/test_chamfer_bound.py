@@ -1,0 +1,55 @@
+"""The Chamfer bound on the hole radius (tiling.chamfer_bound) and the survey measures it is estimated from."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+from model.cover import cover_order
+from model.methods import Learned
+from model.rules import kept_count
+from model.selection import Tile
+from model.stratified import SPACING_QUANTILES
+from pipeline.engine.tasks import survey_fill
+from tiling.budgets import radius_grid
+from tiling.chamfer_bound import COVERED_SQUARE, bounded_radius, estimated_chamfer, mean_clipped_square
+
+
+def test_a_covered_point_counts_its_share_of_the_radius_and_a_near_one_its_own_distance():
+    gaps = np.linspace(0.0, 2.0, 65)[None, :]  # distances spread evenly over [0, 2]
+    assert mean_clipped_square(gaps, 3.0)[0] == pytest.approx(4 / 3, rel=1e-3)  # E[d^2], d uniform on [0, 2]
+    # half the points within 1 (E[d^2] = 1/3 there), half beyond it, covered at COVERED_SQUARE
+    assert mean_clipped_square(gaps, 1.0)[0] == pytest.approx(0.5 / 3 + 0.5 * COVERED_SQUARE, rel=2e-2)
+
+
+def test_a_tile_given_a_quarter_of_its_share_counts_twice_its_distances():
+    gaps = np.array([np.full(65, 0.1), np.full(65, 0.1)])
+    even = estimated_chamfer(gaps, np.ones(2), np.array([1.0, 3.0]), 10.0)
+    stretched = estimated_chamfer(gaps, np.array([2.0, 1.0]), np.array([1.0, 3.0]), 10.0)
+    assert even == pytest.approx(0.01) and stretched == pytest.approx((0.04 + 3 * 0.01) / 4)
+
+
+def test_the_radius_is_kept_where_the_bound_holds_and_narrowed_to_where_it_just_holds():
+    def estimate(radius: float) -> float:
+        return radius ** 2
+    assert bounded_radius(estimate, 4.0, widest=1.5, finest=0.1) == 1.5  # the default's radius, untouched
+    assert bounded_radius(estimate, 4.0, widest=3.0, finest=0.1) == pytest.approx(2.0, rel=1e-6)
+    assert bounded_radius(estimate, 4.0, widest=3.0, finest=2.5) == 2.5  # never below the finest
+
+
+def test_a_survey_measures_its_fills_gaps_and_an_even_thinnings_chamfer_on_a_sample_of_the_core():
+    """A 20k-point tile with a sparse half: the quantiles are those of the sample's distances to the trial
+    fill, and the even Chamfer is the sample's mean squared distance to as many farthest point picks."""
+    rng = np.random.default_rng(2)
+    xyz = np.concatenate([rng.uniform([0, 0, 0], [4, 4, 0.01], size=(18_000, 3)),
+                          rng.uniform([4, 0, 0], [8, 4, 0.01], size=(2_000, 3))])
+    tile = Tile(xyz, np.ones(len(xyz), dtype=bool), np.zeros(3), seed=0)
+    budget = kept_count(0.1, len(xyz))
+    sizes = 0.05 * 2.0 ** np.arange(5)
+    survey = survey_fill(tile, xyz, budget, sizes, Learned())
+    sample = xyz[::len(xyz) // 4096]
+    even = cover_order(xyz, budget)
+    assert survey.even_chamfer == pytest.approx(np.mean(cKDTree(xyz[even]).query(sample)[0] ** 2))
+    assert len(survey.gaps) == len(SPACING_QUANTILES) and np.all(np.diff(survey.gaps) >= 0)
+    assert survey.gaps[-1] > 2 * survey.gaps[32]  # the sparse half's far points
+    assert len(survey.covers) == len(radius_grid(sizes))
