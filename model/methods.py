@@ -17,7 +17,7 @@ from model.baselines import VOXEL_COUNT_SLACK, fps_simplify, random_simplify, tc
 from model.detail import predicted_fill_loss
 from model.learning import DETAIL_WEIGHTS, PAPER_WEIGHTS
 from model.selection import FillLoss, Selection, Tile
-from model.stratified import COVER_SPACINGS, measured_loss, no_loss, stratified_selection
+from model.stratified import CHAMFER_BOUND, COVER_SPACINGS, measured_loss, no_loss, stratified_selection
 
 
 @dataclass(frozen=True)
@@ -124,17 +124,21 @@ class TopCurvature(Method):
 class Fill(Method):
     """The stratified fill and hole cover (model.stratified), each point weighted by its fill loss; a run
     surveys every tile's loss first, so weights and the hole radius are set for the whole scan. A hole
-    is a point farther than `cover_spacings` typical output spacings from every pick."""
+    is a point farther than `cover_spacings` typical output spacings from every pick; a run narrows that
+    radius until its estimate of the output's Chamfer distance is at most `chamfer_bound` times an even
+    thinning's (tiling.chamfer_bound; a single tile simplified on its own has no survey and no bound)."""
 
     cover_spacings: float = COVER_SPACINGS
+    chamfer_bound: float = CHAMFER_BOUND
     picks_read_halo: ClassVar[bool] = False  # a run surveys its loss (the halo as neighbours); the fill and cover: core
     tile_processes_from: ClassVar[int | None] = 300_000  # the survey and hole cover: a tie at 277k, 0.05-0.16 s
                                                          # gained from 410k, 0.06-0.1 s lost at 110-155k (2 cores)
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        if not (np.isfinite(self.cover_spacings) and self.cover_spacings > 0):
-            raise ValueError(f"parameter 'cover_spacings' must be a positive number, got {self.cover_spacings!r}")
+        for name in ("cover_spacings", "chamfer_bound"):
+            if not (np.isfinite(getattr(self, name)) and getattr(self, name) > 0):
+                raise ValueError(f"parameter {name!r} must be a positive number, got {getattr(self, name)!r}")
 
     def fill_loss(self, tile: Tile, budget: int) -> FillLoss:
         """Each point's fill loss (none here: every point weighs the same)."""

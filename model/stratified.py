@@ -33,6 +33,8 @@ from model.selection import FillLoss, Selection, Tile, topped_up
 from model.set_cover import greedy_set_cover
 
 COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
+CHAMFER_BOUND = 1.3  # a run narrows that radius until the output's estimated Chamfer distance is at most this many
+# times an even thinning's (tiling.chamfer_bound; issue 10's coverage target)
 SPACING_QUANTILES = np.linspace(0.0, 1.0, 65)  # a tile reports its picks' spacing as these quantiles
 MAX_COVER_ROUNDS = 6  # fill-and-cover rounds before the budget goes to farthest point sampling alone
 

@@ -43,6 +43,8 @@ def test_parameters_from_a_config_table_the_api_and_an_object(tmp_path):
     ('[run]\nmethod = "voxel"\n[method.voxel]\nslack = "much"\n', "parameter 'slack' must be a number, got 'much'"),
     ('[run]\nmethod = "fps"\n[method.fps]\nslack = 0.1\n', "method 'fps' has no parameter 'slack' (it takes: no parameters)"),
     ('[run]\nmethod = "learned"\n[method.learned]\ndetail = -1\n', "parameter 'detail' must be a number >= 0, got -1"),
+    ('[run]\nmethod = "learned"\n[method.learned]\nchamfer_bound = 0\n',
+     "parameter 'chamfer_bound' must be a positive number, got 0.0"),
     ('[method.voxl]\nslack = 0.1\n', "[method.voxl]: unknown method"),
     ('[method]\nslack = 0.1\n', "[method] must hold one table per method"),
 ])

@@ -381,8 +381,9 @@ def test_the_default_holds_its_chamfer_distance_within_the_bound_where_detail_dr
     """The floor and bumpy patch above: the default gives the bumpy tile twice its share, which thinned the flat
     floor until the output's Chamfer distance was 1.58x that of one farthest point sampling of the whole scan
     (its hole radius, a multiple of the fill's spacing, closed no hole there). The run now narrows the radius
-    until its survey's estimate is within CHAMFER_BOUND (1.3x): measured 1.30x, the bumpy tile still keeping
-    more than twice its share, the flat floor's largest gap 0.129 -> 0.104 m."""
+    until its survey's estimate is within its `chamfer_bound` (1.3x): measured 1.30x, the bumpy tile still
+    keeping more than twice its share, the flat floor's largest gap 0.129 -> 0.104 m. A bound of 100 gives the
+    unbounded radius back."""
     rng = np.random.default_rng(5)
     xy = rng.uniform([0, 0], [16, 4], size=(64_000, 2))
     bumpy = xy[:, 0] >= 12
@@ -390,14 +391,19 @@ def test_the_default_holds_its_chamfer_distance_within_the_bound_where_detail_dr
     las = write_flat_scene(tmp_path / "floor.las", xy, 0.0, rng)
     las.z = z
     las.write(tmp_path / "floor.las")
-    pipeline.run(tmp_path / "floor.las", tmp_path / "out.las", ratio=0.1, tile_size=4.0, workers=1)
-    out = laspy.read(tmp_path / "out.las")
-    kept = np.column_stack([out.x - 500_000, out.y - 4_000_000, out.z])
     scan = np.column_stack([xy, z])
-    even = fps_simplify(Tile(scan, np.ones(len(scan), dtype=bool), np.zeros(3), seed=0), len(kept)).indices
-    chamfer, even_chamfer = (np.mean(cKDTree(points).query(scan)[0] ** 2) for points in (kept, scan[even]))
-    assert chamfer <= 1.35 * even_chamfer, chamfer / even_chamfer
-    assert (kept[:, 0] >= 12).mean() > 0.45
+    even = fps_simplify(Tile(scan, np.ones(len(scan), dtype=bool), np.zeros(3), seed=0), 6_400).indices
+    even_chamfer = np.mean(cKDTree(scan[even]).query(scan)[0] ** 2)
+    chamfers = []
+    for bound in (None, 100.0):
+        parameters = {} if bound is None else {"chamfer_bound": bound}
+        pipeline.run(tmp_path / "floor.las", tmp_path / "out.las", ratio=0.1, tile_size=4.0, workers=1,
+                     method_parameters=parameters, overwrite=True)
+        out = laspy.read(tmp_path / "out.las")
+        kept = np.column_stack([out.x - 500_000, out.y - 4_000_000, out.z])
+        chamfers.append(np.mean(cKDTree(kept).query(scan)[0] ** 2) / even_chamfer)
+        assert (kept[:, 0] >= 12).mean() > 0.45
+    assert chamfers[0] <= 1.35 and chamfers[1] > 1.5, chamfers
 
 
 def test_two_sites_far_apart_run_in_tiles_within_the_budget(tmp_path):

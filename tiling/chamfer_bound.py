@@ -1,6 +1,6 @@
 """The hole radius a run's coverage promise allows: the widest at which the output's Chamfer distance, as the
-survey estimates it, is at most CHAMFER_BOUND times that of an even thinning (farthest point sampling) to
-the same count.
+survey estimates it, is at most the method's `chamfer_bound` (model.stratified.CHAMFER_BOUND, 1.3) times
+that of an even thinning (farthest point sampling) to the same count.
 
 Why: the default's radius (a multiple of the fill's typical spacing, never below the even spacing) sits at
 1.5-1.7 times FPS's p99 on every shared scan; on the French extra-bytes file, whose detail weights pack the
@@ -19,7 +19,6 @@ from typing import Callable
 
 import numpy as np
 
-CHAMFER_BOUND = 1.3  # the output's Chamfer distance at most this many times an even thinning's (issue 10)
 SAMPLE_POINTS = 4096  # core points a survey measures distances from (an even stride): 2.5 ms on a 31k-point
 # bcts tile, about 2 % of its survey and simplify work
 COVERED_SQUARE = 1.0 / 3.0  # a covered point's mean squared distance to the cover's picks, over r^2: 0.27-0.36

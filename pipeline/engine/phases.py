@@ -31,7 +31,7 @@ from tiling.assemble import level_parts, seam_rejections
 from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
 from tiling.budgets import (count_at, coverage_weights, even_spacing, grouped_budgets, hole_voxels, nested_budgets,
                             pooled_median, radius_grid, saliency_weights)
-from tiling.chamfer_bound import CHAMFER_BOUND, bounded_radius, estimated_chamfer
+from tiling.chamfer_bound import bounded_radius, estimated_chamfer
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice
 
@@ -162,30 +162,31 @@ class ScanFill:
     cover_counts: np.ndarray | None = None
 
 
-def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray, target: int,
-              cover_spacings: float, strength: float,
+def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray, target: int, method: Fill,
               planned: Callable[[float, np.ndarray], np.ndarray], lowest: float) -> tuple[np.ndarray, ScanFill]:
     """Tile weights for the budgets and the fill settings that make tiles keep points as one stratified
-    pass over the whole scan would: weights 1 + strength x loss / the scan's mean loss, and a hole radius of
-    `cover_spacings` times the scan's typical pick spacing, but never finer than the even spacing `target`
-    points can cover (below it the floors would exceed the target and tiles cut their hole cover short),
-    narrowed, down to `lowest` at most, where the run's Chamfer bound asks (tiling.chamfer_bound) for the
+    pass over the whole scan would: weights 1 + strength x loss / the scan's mean loss (the method's
+    loss_strength), and a hole radius of its `cover_spacings` times the scan's typical pick spacing, but never
+    finer than the even spacing `target` points can cover (below it the floors would exceed the target and
+    tiles cut their hole cover short), narrowed, down to `lowest` at most, where its `chamfer_bound` asks
+    (tiling.chamfer_bound) for the
     (tiles,) budgets `planned(radius, weights)` gives at the default's weights (strength 1: the radius is the
     default's at any strength)."""
     counts, levels = np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys])
     loss_sums = np.array([s.loss_sum for s in surveys])
-    weights, scales = saliency_weights(counts, levels, loss_sums, strength)
+    weights, scales = saliency_weights(counts, levels, loss_sums, method.loss_strength())
     spacing = pooled_median([s.spacings for s in surveys], np.array([s.picks for s in surveys]))
-    widest = max(cover_spacings * spacing, even_spacing(occupied, sizes, target))
+    widest = max(method.cover_spacings * spacing, even_spacing(occupied, sizes, target))
     default_weights = saliency_weights(counts, levels, loss_sums)[0]
-    radius = chamfer_radius(surveys, lambda r: planned(r, default_weights), widest, min(lowest, widest))
+    radius = chamfer_radius(surveys, lambda r: planned(r, default_weights), method.chamfer_bound, widest,
+                            min(lowest, widest))
     return weights, ScanFill(scales, radius)
 
 
-def chamfer_radius(surveys: list[TileSurvey], budgets_at: Callable[[float], np.ndarray], widest: float,
+def chamfer_radius(surveys: list[TileSurvey], budgets_at: Callable[[float], np.ndarray], bound: float, widest: float,
                    lowest: float) -> float:
     """The widest hole radius in [lowest, widest] at which the scan's Chamfer distance, estimated from the
-    tiles' surveys (tiling.chamfer_bound), is at most CHAMFER_BOUND x that of as many farthest point picks:
+    tiles' surveys (tiling.chamfer_bound), is at most `bound` x that of as many farthest point picks:
     each tile's trial fill stretched from its share of the count to the budget `budgets_at(radius)` ((tiles,))
     gives it there."""
     measured = np.array([len(survey.gaps) > 0 for survey in surveys])
@@ -200,7 +201,7 @@ def chamfer_radius(surveys: list[TileSurvey], budgets_at: Callable[[float], np.n
         stretch = np.sqrt(shares / np.maximum(budgets_at(radius), 1e-9)[measured])
         return estimated_chamfer(gaps, stretch, counts, radius)
 
-    return bounded_radius(estimate, CHAMFER_BOUND * float((even * counts).sum() / counts.sum()), widest, lowest)
+    return bounded_radius(estimate, bound * float((even * counts).sum() / counts.sum()), widest, lowest)
 
 
 def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, counts: np.ndarray,
@@ -222,8 +223,8 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, 
             # trial fill left, and at least the picks that cover it at the hole radius, so a sparse tile can
             # cover all its holes
             planned = planned_budgets(surveys, sizes, counts, config.ratio, plan.budget_groups())
-            weights, fill = scan_fill(surveys, occupied, sizes, target, simplifier.cover_spacings,
-                                      simplifier.loss_strength(), planned, feasible_radius(surveys, sizes, counts, target))
+            weights, fill = scan_fill(surveys, occupied, sizes, target, simplifier, planned,
+                                      feasible_radius(surveys, sizes, counts, target))
             holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes, fill.cover_radius)
             floors = cover_floors(client, plan, slices.core, surveys, sizes, fill.cover_radius, work, config, progress)
             fill = replace(fill, cover_counts=floors)
