@@ -169,9 +169,8 @@ def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray
     loss_strength), and a hole radius of its `cover_spacings` times the scan's typical pick spacing, but never
     finer than the even spacing `target` points can cover (below it the floors would exceed the target and
     tiles cut their hole cover short), narrowed, down to `lowest` at most, where its `chamfer_bound` asks
-    (tiling.chamfer_bound) for the
-    (tiles,) budgets `planned(radius, weights)` gives at the default's weights (strength 1: the radius is the
-    default's at any strength)."""
+    (tiling.chamfer_bound) for the (tiles,) budgets `planned(radius, weights)` gives at the default's weights
+    (strength 1: the radius is the default's at any strength)."""
     counts, levels = np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys])
     loss_sums = np.array([s.loss_sum for s in surveys])
     weights, scales = saliency_weights(counts, levels, loss_sums, method.loss_strength())
@@ -234,33 +233,32 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, 
     return budgets, fill, voxels
 
 
-def surveyed_floors(surveys: list[TileSurvey], sizes: np.ndarray, counts: np.ndarray, radius: float) -> np.ndarray:
-    """(tiles,) each tile's cover count at `radius` as its survey counted it, one more than its share of the
-    count where that fell short (the least it can be; cover_floors counts those tiles' own), at most its
-    (tiles,) points `counts`."""
-    floors = count_at(np.array([survey.covers for survey in surveys]), radius_grid(sizes), radius)
-    shares = np.array([survey.picks for survey in surveys])
-    return np.minimum(np.where(floors < 0, shares + 1, floors), counts)
+def least_covers(surveys: list[TileSurvey], counts: np.ndarray) -> np.ndarray:
+    """(tiles, g) each tile's cover count at each radius of its survey's grid (tiling.budgets.radius_grid), as
+    the survey counted it, one more than its share of the count where that fell short (the least it can be:
+    cover_floors counts those tiles' own), at most its (tiles,) points `counts`."""
+    covers, shares = np.array([survey.covers for survey in surveys]), np.array([survey.picks for survey in surveys])
+    return np.minimum(np.where(covers < 0, shares[:, None] + 1, covers), np.asarray(counts)[:, None])
 
 
 def planned_budgets(surveys: list[TileSurvey], sizes: np.ndarray, counts: np.ndarray, ratio: float,
                     groups: np.ndarray) -> Callable[[float, np.ndarray], np.ndarray]:
-    """(radius, (tiles,) weights) -> the (tiles,) budgets a stratified method's tiles would get at that hole
-    radius, as scan_budgets shares them but with the surveys' floors: what the Chamfer bound is estimated on."""
+    """(radius on the survey's grid, (tiles,) weights) -> the (tiles,) budgets a stratified method's tiles would
+    get at that hole radius, as scan_budgets shares them but with floors of least_covers: what the Chamfer
+    bound is estimated on."""
     occupied, filled = np.array([s.occupied for s in surveys]), np.array([s.filled for s in surveys])
+    least, radii = least_covers(surveys, counts), radius_grid(sizes)
 
     def planned(radius: float, weights: np.ndarray) -> np.ndarray:
-        return grouped_budgets(counts, ratio, groups, floors=surveyed_floors(surveys, sizes, counts, radius),
-                               weights=weights, extra=hole_voxels(occupied, filled, sizes, radius))
+        return grouped_budgets(counts, ratio, groups, floors=count_at(least, radii, radius), weights=weights,
+                               extra=hole_voxels(occupied, filled, sizes, radius))
     return planned
 
 
 def feasible_radius(surveys: list[TileSurvey], sizes: np.ndarray, counts: np.ndarray, target: int) -> float:
-    """The finest radius of the cover grid whose surveyed floors (surveyed_floors) fit in `target` points:
-    below it the hole cover cannot be completed (inf where none fits)."""
-    covers, shares = np.array([survey.covers for survey in surveys]), np.array([survey.picks for survey in surveys])
-    floors = np.minimum(np.where(covers < 0, shares[:, None] + 1, covers), np.asarray(counts)[:, None])
-    fitting = np.flatnonzero(floors.sum(axis=0) <= target)
+    """The finest radius of the survey's grid at which least_covers fit in `target` points: below it the hole
+    cover cannot be completed (inf where none fits)."""
+    fitting = np.flatnonzero(least_covers(surveys, counts).sum(axis=0) <= target)
     return float(radius_grid(sizes)[fitting[0]]) if len(fitting) else float("inf")
 
 

@@ -215,6 +215,11 @@ class FillSurvey:
     gaps: np.ndarray
     even_chamfer: float
 
+    @classmethod
+    def empty(cls, levels: int, covers: np.ndarray) -> "FillSurvey":
+        """Nothing measured: a method with no fill (`covers` empty) or a tile whose share of the count is 0."""
+        return cls(FillLoss(None, 0.0), np.empty(0), np.zeros(levels, dtype=np.int64), covers, np.empty(0), 0.0)
+
 
 def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     """Measure one tile at the scan's ratio and keep the measurement in the work folder (a resumed run reads it)."""
@@ -223,10 +228,8 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     core_xyz, sizes = tile.xyz if tile.core.all() else tile.xyz[tile.core], np.asarray(job.sizes)
     occupied = occupied_voxels(core_xyz, sizes)
     budget = kept_count(job.ratio, tile.core_count)
-    fill = survey_fill(tile, core_xyz, budget, sizes, job.simplifier) if isinstance(job.simplifier, Fill) else None
-    if fill is None:
-        fill = FillSurvey(FillLoss(None, 0.0), np.empty(0), np.zeros_like(occupied), np.empty(0, dtype=np.int64),
-                          np.empty(0), 0.0)
+    fill = (survey_fill(tile, core_xyz, budget, sizes, job.simplifier) if isinstance(job.simplifier, Fill)
+            else FillSurvey.empty(len(sizes), np.empty(0, dtype=np.int64)))
     core_loss = None if fill.loss.relative is None else fill.loss.relative[tile.core]
     loss_sum = float(core_loss.sum()) if core_loss is not None else 0.0
     survey = TileSurvey(occupied, tile.core_count, fill.loss.level, loss_sum, fill.spacings, budget, fill.filled,
@@ -244,8 +247,7 @@ def survey_fill(tile: Tile, core_xyz: np.ndarray, budget: int, sizes: np.ndarray
     spacings and voxels, the farthest point picks' cover counts, and both samplings' distances from a
     sample of the core (core_xyz: (c, 3))."""
     if budget == 0:
-        return FillSurvey(FillLoss(None, 0.0), np.empty(0), np.zeros(len(sizes), dtype=np.int64),
-                          cover_counts(core_xyz, 0, radius_grid(sizes)), np.empty(0), 0.0)
+        return FillSurvey.empty(len(sizes), cover_counts(core_xyz, 0, radius_grid(sizes)))
     even = cover_order(core_xyz, budget)
     covers = cover_counts(core_xyz, budget, radius_grid(sizes), picks=even)
     loss = simplifier.fill_loss(tile, budget)
