@@ -27,12 +27,12 @@ sys.path.insert(0, str(HERE.parent))
 
 from quality import DEFAULT_DATA, load_scan, xyz_of  # noqa: E402
 
-from model.geometry import point_features  # noqa: E402
+from model.geometry import nearest_distance, point_features  # noqa: E402
 from model.metrics import feature_error, nearest  # noqa: E402
 from model.rules import kept_count  # noqa: E402
 from model.selection import Tile  # noqa: E402
-from model.stratified import (COVER_SPACINGS, filled_and_covered, hole_cover, nearest_distance,  # noqa: E402
-                              systematic_picks, typical_spacing)
+from model.stratified import (COVER_SPACINGS, filled_and_covered, hole_cover, systematic_picks,  # noqa: E402
+                              typical_spacing)
 
 
 def scored(xyz: np.ndarray, curvature: np.ndarray, kept: np.ndarray, fill: int) -> tuple[float, float, float, float]:

@@ -312,3 +312,10 @@ def local_features(xyz: np.ndarray, rows: np.ndarray, k: int = 16, order: np.nda
     for wanted, ring_nbrs in found:
         kbar[wanted] = mean_curvature(kappa, ring_nbrs, bandwidth(ring_nbrs))
     return LocalFeatures(found[0][1], row_eigenvalues, kappa, kbar)
+
+
+def nearest_distance(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
+    """Distance from each query to the nearest of `points` (both (m, 3))."""
+    tree = KDTree(np.ascontiguousarray(points, dtype=np.float64))
+    distance, _ = tree.query(np.ascontiguousarray(queries, dtype=np.float64), k=1)
+    return distance

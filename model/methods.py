@@ -126,7 +126,8 @@ class Fill(Method):
     surveys every tile's loss first, so weights and the hole radius are set for the whole scan. A hole
     is a point farther than `cover_spacings` typical output spacings from every pick; a run narrows that
     radius until its estimate of the output's Chamfer distance is at most `chamfer_bound` times an even
-    thinning's (tiling.chamfer_bound; a single tile simplified on its own has no survey and no bound)."""
+    thinning's (model.chamfer_bound; a tile simplified on its own, as a mesh's vertices are, estimates it
+    from its own trial fill)."""
 
     cover_spacings: float = COVER_SPACINGS
     chamfer_bound: float = CHAMFER_BOUND
@@ -149,7 +150,8 @@ class Fill(Method):
         return 1.0
 
     def __call__(self, tile: Tile, budget: int) -> Selection:
-        return stratified_selection(tile, budget, self.fill_loss, self.cover_spacings, self.loss_strength())
+        return stratified_selection(tile, budget, self.fill_loss, self.cover_spacings, self.loss_strength(),
+                                    self.chamfer_bound)
 
 
 @dataclass(frozen=True)

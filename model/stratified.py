@@ -26,15 +26,16 @@ import numpy as np
 from pykdtree.kdtree import KDTree
 
 from model.baselines import first_occurrences
+from model.chamfer_bound import tile_radius
 from model.cover import cover_order
-from model.geometry import local_features, nearest_member
+from model.geometry import local_features, nearest_distance, nearest_member
 from model.rules import distinct_of_sorted, interleaved, radical_inverse_order
 from model.selection import FillLoss, Selection, Tile, topped_up
 from model.set_cover import greedy_set_cover
 
 COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
 CHAMFER_BOUND = 1.3  # a run narrows that radius until the output's estimated Chamfer distance is at most this many
-# times an even thinning's (tiling.chamfer_bound; issue 10's coverage target)
+# times an even thinning's (model.chamfer_bound; issue 10's coverage target)
 SPACING_QUANTILES = np.linspace(0.0, 1.0, 65)  # a tile reports its picks' spacing as these quantiles
 MAX_COVER_ROUNDS = 6  # fill-and-cover rounds before the budget goes to farthest point sampling alone
 
@@ -56,12 +57,13 @@ def measured_loss(tile: Tile, budget: int) -> FillLoss:
     return FillLoss(loss / level if level > 0 else np.zeros_like(loss), level)
 
 
-def stratified_selection(tile: Tile, budget: int, loss_of: LossOf,
-                         cover_spacings: float = COVER_SPACINGS, strength: float = 1.0) -> Selection:
+def stratified_selection(tile: Tile, budget: int, loss_of: LossOf, cover_spacings: float = COVER_SPACINGS,
+                         strength: float = 1.0, chamfer_bound: float = CHAMFER_BOUND) -> Selection:
     """The fill and cover of the module doc. For a tile on its own (no `tile.context`), `loss_of(tile,
     budget)` sets the keep weights 1 + strength x relative loss and the cover radius is `cover_spacings`
     typical spacings of a trial fill at strength 1 (so a stronger weighting, which packs its picks closer
-    on detail, does not shrink the radius: the run's survey measures spacings so too); a pipeline run's
+    on detail, does not shrink the radius: the run's survey measures spacings so too), narrowed as a run
+    narrows its radius to keep `chamfer_bound` (model.chamfer_bound.tile_radius); a pipeline run's
     context holds the scan-wide weights and radius instead, and the prefix the run keeps (fill and cover
     are planned for it; the picks after it are random)."""
     context = tile.context
@@ -76,13 +78,22 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf,
     loss = loss_of(tile, planned) if context is None else context.loss
     curve_weights = curve_of(fill_weights(loss, strength if context is None else context.detail_scale), curve)
     trial = weighted_picks(curve, curve_weights, planned, phase)
-    radius = context.cover_radius if context is not None else cover_spacings * typical_spacing(
-        tile.xyz[trial if strength == 1.0 else trial_fill(tile, planned, loss, phase)])
+    radius = context.cover_radius if context is not None else own_radius(
+        tile, trial if strength == 1.0 else trial_fill(tile, planned, loss, phase), planned, cover_spacings,
+        chamfer_bound)
     fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase), planned,
                                      radius, len(hole_cover(tile.xyz, trial, core, radius, curve)),
                                      0 if context is None else context.cover_count)
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
     return Selection.of(tile, topped_up(order, core, budget, rng))
+
+
+def own_radius(tile: Tile, trial: np.ndarray, budget: int, cover_spacings: float, chamfer_bound: float) -> float:
+    """The hole radius of a tile on its own: `cover_spacings` typical spacings of its trial fill (indices
+    `trial`, of `budget` core points), narrowed to keep `chamfer_bound` (model.chamfer_bound.tile_radius)."""
+    fill_xyz = tile.xyz[trial]
+    core_xyz = tile.xyz if tile.core.all() else tile.xyz[tile.core]
+    return tile_radius(core_xyz, fill_xyz, budget, cover_spacings * typical_spacing(fill_xyz), chamfer_bound)
 
 
 def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget: int, radius: float,
@@ -253,10 +264,3 @@ def near_along(xyz: np.ndarray, kept: np.ndarray, candidates: np.ndarray, radius
             squared += offset * offset
         near |= squared <= reach
     return near[position[candidates]]
-
-
-def nearest_distance(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
-    """Distance from each query to the nearest of `points` (both (m, 3))."""
-    tree = KDTree(np.ascontiguousarray(points, dtype=np.float64))
-    distance, _ = tree.query(np.ascontiguousarray(queries, dtype=np.float64), k=1)
-    return distance

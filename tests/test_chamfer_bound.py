@@ -1,18 +1,19 @@
-"""The Chamfer bound on the hole radius (tiling.chamfer_bound) and the survey measures it is estimated from."""
+"""The Chamfer bound on the hole radius (model.chamfer_bound): its estimate, the survey measures it is
+estimated from, and a tile on its own."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from model.baselines import fps_simplify
+from model.chamfer_bound import COVERED_SQUARE, GAP_QUANTILES, bounded_radius, estimated_chamfer, mean_clipped_square
 from model.cover import cover_order
 from model.methods import Learned
 from model.rules import kept_count
 from model.selection import Tile
-from model.stratified import SPACING_QUANTILES
 from pipeline.engine.tasks import survey_fill
 from tiling.budgets import radius_grid
-from tiling.chamfer_bound import COVERED_SQUARE, bounded_radius, estimated_chamfer, mean_clipped_square
 
 
 def test_a_covered_point_counts_its_share_of_the_radius_and_a_near_one_its_own_distance():
@@ -50,6 +51,26 @@ def test_a_survey_measures_its_fills_gaps_and_an_even_thinnings_chamfer_on_a_sam
     sample = xyz[::len(xyz) // 4096]
     even = cover_order(xyz, budget)
     assert survey.even_chamfer == pytest.approx(np.mean(cKDTree(xyz[even]).query(sample)[0] ** 2))
-    assert len(survey.gaps) == len(SPACING_QUANTILES) and np.all(np.diff(survey.gaps) >= 0)
+    assert len(survey.gaps) == len(GAP_QUANTILES) and np.all(np.diff(survey.gaps) >= 0)
     assert survey.gaps[-1] > 2 * survey.gaps[32]  # the sparse half's far points
     assert len(survey.covers) == len(radius_grid(sizes))
+
+
+def test_a_tile_on_its_own_keeps_the_bound_from_its_own_trial_fill():
+    """The floor-and-bump scene as one tile (a mesh's vertices and the API take this path): the default
+    narrows its radius from its own trial fill and as many farthest point picks, as a run does from its
+    survey: Chamfer over one FPS of the tile 1.51x with a bound of 100 (the radius unbounded), 1.19x with
+    the default's 1.3, the bumpy part still keeping nearly twice its share (a quarter)."""
+    rng = np.random.default_rng(5)
+    xy = rng.uniform([0, 0], [16, 4], size=(64_000, 2))
+    bumpy = xy[:, 0] >= 12
+    z = np.where(bumpy, 0.4 * np.sin(6 * xy[:, 0]) * np.cos(6 * xy[:, 1]), 0.0) + 0.002 * rng.normal(size=len(xy))
+    xyz = np.column_stack([xy, z]) - [8.0, 2.0, 0.0]
+    tile = Tile(xyz, np.ones(len(xyz), dtype=bool), np.zeros(3), seed=0)
+    even_chamfer = np.mean(cKDTree(xyz[fps_simplify(tile, 6_400).indices]).query(xyz)[0] ** 2)
+    chamfers = {}
+    for bound in (1.3, 100.0):
+        kept = Learned(chamfer_bound=bound)(tile, 6_400).indices
+        assert len(kept) == 6_400 and bumpy[kept].mean() > 0.4
+        chamfers[bound] = np.mean(cKDTree(xyz[kept]).query(xyz)[0] ** 2) / even_chamfer
+    assert chamfers[1.3] <= 1.3 < 1.4 < chamfers[100.0], chamfers

@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any, Callable
 
 import numpy as np
 
+from model.chamfer_bound import bounded_radius, estimated_chamfer
 from model.cover import grown_sample
 from model.methods import Fill
 from model.rules import kept_count
@@ -31,7 +32,6 @@ from tiling.assemble import level_parts, seam_rejections
 from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
 from tiling.budgets import (count_at, coverage_weights, even_spacing, grouped_budgets, hole_voxels, nested_budgets,
                             pooled_median, radius_grid, saliency_weights)
-from tiling.chamfer_bound import bounded_radius, estimated_chamfer
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice
 
@@ -169,7 +169,7 @@ def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray
     loss_strength), and a hole radius of its `cover_spacings` times the scan's typical pick spacing, but never
     finer than the even spacing `target` points can cover (below it the floors would exceed the target and
     tiles cut their hole cover short), narrowed, down to `lowest` at most, where its `chamfer_bound` asks
-    (tiling.chamfer_bound) for the (tiles,) budgets `planned(radius, weights)` gives at the default's weights
+    (model.chamfer_bound) for the (tiles,) budgets `planned(radius, weights)` gives at the default's weights
     (strength 1: the radius is the default's at any strength)."""
     counts, levels = np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys])
     loss_sums = np.array([s.loss_sum for s in surveys])
@@ -185,7 +185,7 @@ def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray
 def chamfer_radius(surveys: list[TileSurvey], budgets_at: Callable[[float], np.ndarray], bound: float, widest: float,
                    lowest: float) -> float:
     """The widest hole radius in [lowest, widest] at which the scan's Chamfer distance, estimated from the
-    tiles' surveys (tiling.chamfer_bound), is at most `bound` x that of as many farthest point picks:
+    tiles' surveys (model.chamfer_bound), is at most `bound` x that of as many farthest point picks:
     each tile's trial fill stretched from its share of the count to the budget `budgets_at(radius)` ((tiles,))
     gives it there."""
     measured = np.array([len(survey.gaps) > 0 for survey in surveys])

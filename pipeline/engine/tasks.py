@@ -14,16 +14,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from model.chamfer_bound import sampled_measures
 from model.cover import cover_counts, cover_order
 from model.methods import Fill, Method
 from model.rules import column_mean, column_min, grid_xyz, kept_count, take_records
 from model.selection import FillContext, FillLoss, Selection, Tile, VoxelCounts
-from model.stratified import SPACING_QUANTILES, nearest_distance, pick_spacings, trial_fill
+from model.stratified import pick_spacings, trial_fill
 from pipeline.engine.classes import ClassRule, class_histogram
 from pipeline.engine.workdir import BucketedPiece, WorkDir, save_npz, write_atomically
 from tiling.bucket import SubCellIndex, bucket_by_cell, bucket_by_sub_cell
 from tiling.budgets import occupied_voxels, radius_grid
-from tiling.chamfer_bound import sample_rows
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, StoredPoints, TileStore
 
@@ -190,7 +190,7 @@ class TileSurvey:
     picks that cover the core at each radius of tiling.budgets.radius_grid(sizes) (-1: more than `picks`;
     empty for a method with no fill), (quantiles,) distances from a sample of core points to the trial
     fill's nearest pick and the sample's mean squared distance to as many farthest point picks
-    (tiling.chamfer_bound; empty and 0 without a fill)."""
+    (model.chamfer_bound; empty and 0 without a fill)."""
 
     occupied: np.ndarray
     core_count: int
@@ -252,9 +252,7 @@ def survey_fill(tile: Tile, core_xyz: np.ndarray, budget: int, sizes: np.ndarray
     covers = cover_counts(core_xyz, budget, radius_grid(sizes), picks=even)
     loss = simplifier.fill_loss(tile, budget)
     picks = tile.xyz[trial_fill(tile, budget, loss)]
-    sample = core_xyz[sample_rows(len(core_xyz))]
-    gaps = np.quantile(nearest_distance(picks, sample), SPACING_QUANTILES)
-    even_chamfer = float(np.mean(nearest_distance(core_xyz[even], sample) ** 2))
+    gaps, even_chamfer, _ = sampled_measures(core_xyz, picks, core_xyz[even])
     return FillSurvey(loss, pick_spacings(picks), occupied_voxels(picks, sizes, origin=column_min(core_xyz)), covers,
                       gaps, even_chamfer)
 

@@ -19,11 +19,15 @@ from typing import Callable
 
 import numpy as np
 
+from model.cover import cover_order
+from model.geometry import nearest_distance
+
 SAMPLE_POINTS = 4096  # core points a survey measures distances from (an even stride): 2.5 ms on a 31k-point
 # bcts tile, about 2 % of its survey and simplify work
 COVERED_SQUARE = 1.0 / 3.0  # a covered point's mean squared distance to the cover's picks, over r^2: 0.27-0.36
 # measured (three scans as one tile, four radii): a hole's points lie along scan lines (1/3 on a line about its
 # middle) more than across a disc (1/2)
+GAP_QUANTILES = np.linspace(0.0, 1.0, 65)  # a tile reports its sample's distances to the fill as these quantiles
 BISECTIONS = 30  # halvings of the radius interval: far finer than the cover's 2**(1/16) radius grid
 
 
@@ -57,3 +61,26 @@ def bounded_radius(estimate: Callable[[float], float], limit: float, widest: flo
 def sample_rows(count: int) -> slice:
     """An even stride over `count` rows, about SAMPLE_POINTS of them."""
     return slice(0, count, max(1, count // SAMPLE_POINTS))
+
+
+def sampled_measures(core_xyz: np.ndarray, fill_xyz: np.ndarray,
+                     even_xyz: np.ndarray) -> tuple[np.ndarray, float, float]:
+    """On an even stride of about SAMPLE_POINTS of a tile's core (c, 3): (GAP_QUANTILES,) quantiles of the
+    distance to the nearest of a fill's points (m, 3), the mean squared distance to the nearest of an even
+    thinning's points (m', 3), and the largest such distance (about the radius those picks cover)."""
+    sample = core_xyz[sample_rows(len(core_xyz))]
+    even = nearest_distance(even_xyz, sample)
+    return np.quantile(nearest_distance(fill_xyz, sample), GAP_QUANTILES), float(np.mean(even ** 2)), float(even.max())
+
+
+def tile_radius(core_xyz: np.ndarray, fill_xyz: np.ndarray, budget: int, widest: float, bound: float) -> float:
+    """The hole radius for a tile simplified on its own (no run, no survey: a mesh's vertices, the API on one
+    tile): the widest up to `widest` whose estimated Chamfer distance is at most `bound` x that of `budget`
+    farthest point picks of the core (c, 3), from the tile's own trial fill's points (m, 3), down to about the
+    radius those picks cover."""
+    if budget == 0 or len(fill_xyz) == 0:
+        return widest
+    gaps, even_chamfer, covered = sampled_measures(core_xyz, fill_xyz, core_xyz[cover_order(core_xyz, budget)])
+    one = np.ones(1)
+    return bounded_radius(lambda radius: estimated_chamfer(gaps[None, :], one, one, radius), bound * even_chamfer,
+                          widest, min(covered, widest))
