@@ -314,6 +314,9 @@ def local_features(xyz: np.ndarray, rows: np.ndarray, k: int = 16, order: np.nda
     return LocalFeatures(found[0][1], row_eigenvalues, kappa, kbar)
 
 
+DISTANCE_QUANTILES = np.linspace(0.0, 1.0, 65)  # a tile reports a distribution of distances as these quantiles
+
+
 def nearest_distance(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """Distance from each query to the nearest of `points` (both (m, 3))."""
     tree = KDTree(np.ascontiguousarray(points, dtype=np.float64))

@@ -126,8 +126,8 @@ class Fill(Method):
     surveys every tile's loss first, so weights and the hole radius are set for the whole scan. A hole
     is a point farther than `cover_spacings` typical output spacings from every pick; a run narrows that
     radius until its estimate of the output's Chamfer distance is at most `chamfer_bound` times an even
-    thinning's (model.chamfer_bound; a tile simplified on its own, as a mesh's vertices are, estimates it
-    from its own trial fill)."""
+    thinning's (model.chamfer_bound), as the budgets at `detail` 1 would leave it, whatever the weights (a tile
+    simplified on its own, as a mesh's vertices are, estimates it from its own trial fill)."""
 
     cover_spacings: float = COVER_SPACINGS
     chamfer_bound: float = CHAMFER_BOUND

@@ -28,7 +28,7 @@ from pykdtree.kdtree import KDTree
 from model.baselines import first_occurrences
 from model.chamfer_bound import tile_radius
 from model.cover import cover_order
-from model.geometry import local_features, nearest_distance, nearest_member
+from model.geometry import DISTANCE_QUANTILES, local_features, nearest_distance, nearest_member
 from model.rules import distinct_of_sorted, interleaved, radical_inverse_order
 from model.selection import FillLoss, Selection, Tile, topped_up
 from model.set_cover import greedy_set_cover
@@ -36,7 +36,6 @@ from model.set_cover import greedy_set_cover
 COVER_SPACINGS = 2.0  # a point farther than this many typical output spacings from every pick is a hole
 CHAMFER_BOUND = 1.3  # a run narrows that radius until the output's estimated Chamfer distance is at most this many
 # times an even thinning's (model.chamfer_bound; issue 10's coverage target)
-SPACING_QUANTILES = np.linspace(0.0, 1.0, 65)  # a tile reports its picks' spacing as these quantiles
 MAX_COVER_ROUNDS = 6  # fill-and-cover rounds before the budget goes to farthest point sampling alone
 
 
@@ -152,12 +151,12 @@ def trial_fill(tile: Tile, budget: int, loss: FillLoss, phase: float = 0.5) -> n
 
 
 def pick_spacings(picks: np.ndarray) -> np.ndarray:
-    """(len(SPACING_QUANTILES),) quantiles of the nearest-pick distance among `picks` (m, 3) (empty below two
+    """(len(DISTANCE_QUANTILES),) quantiles of the nearest-pick distance among `picks` (m, 3) (empty below two
     picks): pooled over tiles' trial fills, the scan's typical output spacing."""
     if len(picks) < 2:
         return np.empty(0)
     distance, _ = KDTree(np.ascontiguousarray(picks, dtype=np.float64)).query(picks, k=2)
-    return np.quantile(distance[:, 1], SPACING_QUANTILES)
+    return np.quantile(distance[:, 1], DISTANCE_QUANTILES)
 
 
 def curvature_loss(tile: Tile, budget: int, phase: float = 0.5, here: np.ndarray | None = None) -> np.ndarray:

@@ -7,13 +7,14 @@ import pytest
 from scipy.spatial import cKDTree
 
 from model.baselines import fps_simplify
-from model.chamfer_bound import COVERED_SQUARE, GAP_QUANTILES, bounded_radius, estimated_chamfer, mean_clipped_square
+from model.chamfer_bound import COVERED_SQUARE, bounded_radius, estimated_chamfer, mean_clipped_square
 from model.cover import cover_order
+from model.geometry import DISTANCE_QUANTILES
 from model.methods import Learned
 from model.rules import kept_count
 from model.selection import Tile
 from pipeline.engine.tasks import survey_fill
-from tiling.budgets import radius_grid
+from tiling.budgets import feasible_radius, least_covers, radius_grid
 
 
 def test_a_covered_point_counts_its_share_of_the_radius_and_a_near_one_its_own_distance():
@@ -51,7 +52,7 @@ def test_a_survey_measures_its_fills_gaps_and_an_even_thinnings_chamfer_on_a_sam
     sample = xyz[::len(xyz) // 4096]
     even = cover_order(xyz, budget)
     assert survey.even_chamfer == pytest.approx(np.mean(cKDTree(xyz[even]).query(sample)[0] ** 2))
-    assert len(survey.gaps) == len(GAP_QUANTILES) and np.all(np.diff(survey.gaps) >= 0)
+    assert len(survey.gaps) == len(DISTANCE_QUANTILES) and np.all(np.diff(survey.gaps) >= 0)
     assert survey.gaps[-1] > 2 * survey.gaps[32]  # the sparse half's far points
     assert len(survey.covers) == len(radius_grid(sizes))
 
@@ -74,3 +75,12 @@ def test_a_tile_on_its_own_keeps_the_bound_from_its_own_trial_fill():
         assert len(kept) == 6_400 and bumpy[kept].mean() > 0.4
         chamfers[bound] = np.mean(cKDTree(xyz[kept]).query(xyz)[0] ** 2) / even_chamfer
     assert chamfers[1.3] <= 1.3 < 1.4 < chamfers[100.0], chamfers
+
+
+def test_the_least_covers_read_a_short_survey_as_one_more_than_its_share_and_fit_the_target_from_some_radius():
+    """A survey samples its share of picks, so a count it knows is at most that share: -1 means more."""
+    covers = np.array([[-1, -1, 28, 10], [-1, 24, 20, 5]])  # (tiles, radii), shares 30 and 25
+    least = least_covers(covers, shares=np.array([30, 25]), counts=np.array([30, 200]))
+    assert least.tolist() == [[30, 30, 28, 10], [26, 24, 20, 5]]  # at most the tile's points
+    radii = np.array([0.5, 1.0, 2.0, 4.0])
+    assert [feasible_radius(least, radii, target) for target in (60, 54, 48, 10)] == [0.5, 1.0, 2.0, np.inf]

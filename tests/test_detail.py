@@ -36,7 +36,8 @@ def test_default_keeps_the_edge_and_the_pole_where_uniform_thinning_does_not():
     """Counts near the edge and on the pole, and how close the pole's points stay to a kept point: its 90th
     percentile distance (0.072-0.077 m over seeds 0-3, uniform's 0.118-0.131). Its largest gap, asserted at
     0.7x uniform's until 0.3.11, held for seeds 0 and 2 only (0.68x, 0.54x; 0.84x and 0.71x for 1 and 3), and
-    moved to 0.96x at seed 0 when the tile's Chamfer bound narrowed its hole radius (seeds 1-3: 0.53-0.78x)."""
+    moved to 0.96x at seed 0 when the tile's Chamfer bound narrowed its hole radius (seeds 1-3: 0.53-0.78x): it
+    is held below uniform's."""
     tile, near_edge, on_pole = edge_pole_plane()
     ratio = 0.1
     budget = round(ratio * len(tile.xyz))
@@ -45,9 +46,10 @@ def test_default_keeps_the_edge_and_the_pole_where_uniform_thinning_does_not():
     assert len(learned) == budget and len(np.unique(learned)) == budget
     assert share_kept(learned, near_edge, ratio) > 1.4 and share_kept(uniform, near_edge, ratio) < 1.25
     assert share_kept(learned, on_pole, ratio) > 2.0 and share_kept(uniform, on_pole, ratio) < 1.5
-    pole_gap = {name: np.quantile(cKDTree(tile.xyz[kept]).query(tile.xyz[on_pole])[0], 0.9)
+    pole_gap = {name: cKDTree(tile.xyz[kept]).query(tile.xyz[on_pole])[0]
                 for name, kept in (("learned", learned), ("uniform", uniform))}
-    assert pole_gap["learned"] < 0.7 * pole_gap["uniform"]
+    assert np.quantile(pole_gap["learned"], 0.9) < 0.7 * np.quantile(pole_gap["uniform"], 0.9)
+    assert pole_gap["learned"].max() < pole_gap["uniform"].max()
 
 
 def test_detail_sets_how_much_the_edge_and_the_pole_keep_and_the_plane_pays_for_it():

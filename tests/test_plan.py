@@ -251,12 +251,12 @@ def test_saliency_weights_are_the_sums_of_one_pass_keep_weights():
 
 
 def test_pooled_median_of_quantile_sketches_matches_the_union():
-    from model.stratified import SPACING_QUANTILES
+    from model.geometry import DISTANCE_QUANTILES
     from tiling.budgets import pooled_median
 
     rng = np.random.default_rng(2)
     samples = [rng.lognormal(0, 0.3, 20_000), rng.lognormal(1, 0.3, 5_000), np.empty(0)]
-    sketches = [np.quantile(s, SPACING_QUANTILES) if len(s) else s for s in samples]
+    sketches = [np.quantile(s, DISTANCE_QUANTILES) if len(s) else s for s in samples]
     pooled = pooled_median(sketches, np.array([len(s) for s in samples]))
     assert abs(pooled - np.median(np.concatenate(samples))) < 0.03
     assert pooled_median([np.empty(0)], np.array([0])) == 0.0

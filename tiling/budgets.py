@@ -173,6 +173,20 @@ def count_at(counts: np.ndarray, radii: np.ndarray, radius: float) -> np.ndarray
     return np.asarray(counts)[:, at].astype(np.int64)
 
 
+def least_covers(covers: np.ndarray, shares: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(tiles, g) each tile's cover count at each radius of its survey's grid (radius_grid) from its (tiles, g)
+    surveyed `covers`, one more than its (tiles,) share of the count where they fell short (-1: the least it
+    can be; the run counts those tiles' own), at most its (tiles,) points `counts`."""
+    return np.minimum(np.where(covers < 0, np.asarray(shares)[:, None] + 1, covers), np.asarray(counts)[:, None])
+
+
+def feasible_radius(least: np.ndarray, radii: np.ndarray, target: int) -> float:
+    """The finest of `radii` (g,) at which the (tiles, g) `least` covers fit in `target` points: below it the
+    hole cover cannot be completed (inf where none fits)."""
+    fitting = np.flatnonzero(least.sum(axis=0) <= target)
+    return float(radii[fitting[0]]) if len(fitting) else float("inf")
+
+
 DISC_EDGE = float(np.sqrt(np.pi))  # a hole's cover point serves the points within the cover radius r of it: on a
 # surface a disc of area pi r^2, the area of a square of edge sqrt(pi) r. Counted at edge r, the holes came out 5.8x
 # the covers' picks on lone-star at 0.1 (9 tiles), at sqrt(pi) r 1.2x

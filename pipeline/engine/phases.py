@@ -30,8 +30,8 @@ from pipeline.io.writers import write_output
 from pipeline.progress import Progress, counted
 from tiling.assemble import level_parts, seam_rejections
 from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
-from tiling.budgets import (count_at, coverage_weights, even_spacing, grouped_budgets, hole_voxels, nested_budgets,
-                            pooled_median, radius_grid, saliency_weights)
+from tiling.budgets import (count_at, coverage_weights, even_spacing, feasible_radius, grouped_budgets, hole_voxels,
+                            least_covers, nested_budgets, pooled_median, radius_grid, saliency_weights)
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice
 
@@ -166,11 +166,12 @@ def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray
               planned: Callable[[float, np.ndarray], np.ndarray], lowest: float) -> tuple[np.ndarray, ScanFill]:
     """Tile weights for the budgets and the fill settings that make tiles keep points as one stratified
     pass over the whole scan would: weights 1 + strength x loss / the scan's mean loss (the method's
-    loss_strength), and a hole radius of its `cover_spacings` times the scan's typical pick spacing, but never
-    finer than the even spacing `target` points can cover (below it the floors would exceed the target and
-    tiles cut their hole cover short), narrowed, down to `lowest` at most, where its `chamfer_bound` asks
-    (model.chamfer_bound) for the (tiles,) budgets `planned(radius, weights)` gives at the default's weights
-    (strength 1: the radius is the default's at any strength)."""
+    loss_strength), and a hole radius of its `cover_spacings` times the scan's typical pick spacing, but not
+    finer than the even spacing `target` points can cover (the default's floor before 0.3.11), then narrowed
+    where its `chamfer_bound` asks (model.chamfer_bound) for the (tiles,) budgets `planned(radius, weights)`
+    gives at the default's weights (strength 1: the radius is the default's at any strength), down to
+    `lowest` at most (tiling.budgets.feasible_radius: below it the floors would exceed the target and tiles
+    would cut their hole cover short)."""
     counts, levels = np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys])
     loss_sums = np.array([s.loss_sum for s in surveys])
     weights, scales = saliency_weights(counts, levels, loss_sums, method.loss_strength())
@@ -221,9 +222,11 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, 
             # saliency shared as one pass would: one fill rate for every tile, plus a point for each hole its
             # trial fill left, and at least the picks that cover it at the hole radius, so a sparse tile can
             # cover all its holes
-            planned = planned_budgets(surveys, sizes, counts, config.ratio, plan.budget_groups())
+            least = least_covers(np.array([s.covers for s in surveys]), np.array([s.picks for s in surveys]),
+                                 counts)
+            planned = planned_budgets(surveys, sizes, counts, config.ratio, plan.budget_groups(), least)
             weights, fill = scan_fill(surveys, occupied, sizes, target, simplifier, planned,
-                                      feasible_radius(surveys, sizes, counts, target))
+                                      feasible_radius(least, radius_grid(sizes), target))
             holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes, fill.cover_radius)
             floors = cover_floors(client, plan, slices.core, surveys, sizes, fill.cover_radius, work, config, progress)
             fill = replace(fill, cover_counts=floors)
@@ -233,33 +236,18 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, 
     return budgets, fill, voxels
 
 
-def least_covers(surveys: list[TileSurvey], counts: np.ndarray) -> np.ndarray:
-    """(tiles, g) each tile's cover count at each radius of its survey's grid (tiling.budgets.radius_grid), as
-    the survey counted it, one more than its share of the count where that fell short (the least it can be:
-    cover_floors counts those tiles' own), at most its (tiles,) points `counts`."""
-    covers, shares = np.array([survey.covers for survey in surveys]), np.array([survey.picks for survey in surveys])
-    return np.minimum(np.where(covers < 0, shares[:, None] + 1, covers), np.asarray(counts)[:, None])
-
-
 def planned_budgets(surveys: list[TileSurvey], sizes: np.ndarray, counts: np.ndarray, ratio: float,
-                    groups: np.ndarray) -> Callable[[float, np.ndarray], np.ndarray]:
-    """(radius on the survey's grid, (tiles,) weights) -> the (tiles,) budgets a stratified method's tiles would
-    get at that hole radius, as scan_budgets shares them but with floors of least_covers: what the Chamfer
-    bound is estimated on."""
+                    groups: np.ndarray, least: np.ndarray) -> Callable[[float, np.ndarray], np.ndarray]:
+    """(radius, (tiles,) weights) -> the (tiles,) budgets a stratified method's tiles would get at that hole
+    radius, as scan_budgets shares them but with floors read from `least` (tiling.budgets.least_covers, at the
+    survey's grid radius just below it): what the Chamfer bound is estimated on."""
     occupied, filled = np.array([s.occupied for s in surveys]), np.array([s.filled for s in surveys])
-    least, radii = least_covers(surveys, counts), radius_grid(sizes)
+    radii = radius_grid(sizes)
 
     def planned(radius: float, weights: np.ndarray) -> np.ndarray:
         return grouped_budgets(counts, ratio, groups, floors=count_at(least, radii, radius), weights=weights,
                                extra=hole_voxels(occupied, filled, sizes, radius))
     return planned
-
-
-def feasible_radius(surveys: list[TileSurvey], sizes: np.ndarray, counts: np.ndarray, target: int) -> float:
-    """The finest radius of the survey's grid at which least_covers fit in `target` points: below it the hole
-    cover cannot be completed (inf where none fits)."""
-    fitting = np.flatnonzero(least_covers(surveys, counts).sum(axis=0) <= target)
-    return float(radius_grid(sizes)[fitting[0]]) if len(fitting) else float("inf")
 
 
 def cover_floors(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], surveys: list[TileSurvey],

@@ -7,7 +7,7 @@ local or remote cluster can run it, in any order, with the same result.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -200,8 +200,8 @@ class TileSurvey:
     picks: int
     filled: np.ndarray
     covers: np.ndarray
-    gaps: np.ndarray = field(default_factory=lambda: np.empty(0))
-    even_chamfer: float = 0.0
+    gaps: np.ndarray
+    even_chamfer: float
 
 
 @dataclass(frozen=True)
