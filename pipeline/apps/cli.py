@@ -161,11 +161,14 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
                        "kept_whole": report.kept_whole,
                        "levels": [{"output": str(path), "points": points} for path, points in report.levels],
                        "tiles": report.tiles, "resumed_tiles": report.resumed_tiles,
-                       "seconds": round(report.seconds, 3), "phases": report.phases})
+                       "seconds": round(report.seconds, 3), "phases": report.phases,
+                       "hole_radius_m": None if report.hole_radius_m is None else report.hole_radius_m[0]})
     elif not quiet:
         click.echo(report.summary(settings))
     if verbose:
         click.echo("  ".join(f"{phase}: {seconds:.2f} s" for phase, seconds in report.phases.items()))
+        if said := report.hole_line():
+            click.echo(said)
 
 
 @cli.command("batch")

@@ -154,11 +154,13 @@ def survey_scan(client: Client | Executor, plan: TilePlan, slices: list[list[Sli
 
 @dataclass(frozen=True)
 class ScanFill:
-    """The scan-wide settings of a stratified method's tiles: (tiles,) detail scales, the hole radius and
-    (tiles,) the picks that cover each tile at it (none before they are counted)."""
+    """The scan-wide settings of a stratified method's tiles: (tiles,) detail scales, the hole radius, the
+    radius before the Chamfer bound narrowed it (the same where it did not) and (tiles,) the picks that cover
+    each tile at it (none before they are counted)."""
 
     detail_scales: np.ndarray
     cover_radius: float
+    unbounded_radius: float
     cover_counts: np.ndarray | None = None
 
 
@@ -180,7 +182,7 @@ def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray
     default_weights = saliency_weights(counts, levels, loss_sums)[0]
     radius = chamfer_radius(surveys, lambda r: planned(r, default_weights), method.chamfer_bound, widest,
                             min(lowest, widest))
-    return weights, ScanFill(scales, radius)
+    return weights, ScanFill(scales, radius, widest)
 
 
 def chamfer_radius(surveys: list[TileSurvey], budgets_at: Callable[[float], np.ndarray], bound: float, widest: float,

@@ -15,7 +15,7 @@ from model.rules import kept_count
 from pipeline.config import RunConfig
 from pipeline.engine.classes import ClassRule
 from pipeline.engine.execute import cluster, map_tasks
-from pipeline.engine.phases import (RESERVE_SHARE, bucket_scan, core_points, crowded_cells_note, make_jobs,
+from pipeline.engine.phases import (RESERVE_SHARE, ScanFill, bucket_scan, core_points, crowded_cells_note, make_jobs,
                                     scan_budgets, stitch_outputs)
 from pipeline.engine.preflight import check_room, check_run
 from pipeline.engine.processes import importing_parents_script, use_tile_processes
@@ -50,6 +50,8 @@ class RunReport:
     phases: dict[str, float]
     levels: tuple[tuple[Path, int], ...] = ()  # every output written and its points, finest first
     kept_whole: int = 0  # points a class rule kept whole (counted in output_points)
+    hole_radius_m: tuple[float, float] | None = None  # a stratified method's hole radius and the radius before the
+                                                      # Chamfer bound narrowed it, metres (None for other methods)
 
     def summary(self, config: RunConfig) -> str:
         """What `pipeline run` prints: a line per output written, and what a class rule kept whole."""
@@ -63,6 +65,14 @@ class RunReport:
             lines.append(f"{rule.describe()}: {self.kept_whole:,} points kept whole; the other {thinned:,} thinned to "
                          + ", ".join(f"{points - self.kept_whole:,}" for _, points in self.levels))
         return "\n".join(lines)
+
+    def hole_line(self) -> str | None:
+        """What `pipeline run -v` says of a stratified method's hole radius (None for other methods)."""
+        if self.hole_radius_m is None:
+            return None
+        radius, unbounded = self.hole_radius_m
+        narrowed = f" (narrowed from {unbounded:.4g} m by the Chamfer bound)" if radius < unbounded else ""
+        return f"hole radius: {radius:.4g} m{narrowed}"
 
 
 def default_output(first_input: Path) -> Path:
@@ -133,8 +143,9 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
         with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here,
                                                         elsewhere) as active:
             try:
-                written, tiles, resumed, kept_whole = simplify_scan(scan, outputs, config, settings, work, active, clock,
-                                                                    progress or Progress(), note or (lambda line: None))
+                written, tiles, resumed, kept_whole, fill = simplify_scan(scan, outputs, config, settings, work, active,
+                                                                          clock, progress or Progress(),
+                                                                          note or (lambda line: None))
             except KeyboardInterrupt as exc:  # the cluster closes next: bounded, if a grace is given
                 guard.arm(f"pipeline: {interrupted_line(work)}", signal_exit_code(exc))
                 raise
@@ -147,8 +158,9 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
         guard.cancel()
         raise interrupted(exc, work, output if written is not None else None) from None
     work.remove()
+    hole = None if fill is None else (fill.cover_radius * unit.metres, fill.unbounded_radius * unit.metres)
     return RunReport(outputs[0], scan.point_count, written[0], tiles, resumed, clock.total, clock.laps,
-                     tuple(zip(outputs, written)), kept_whole)
+                     tuple(zip(outputs, written)), kept_whole, hole)
 
 
 def written_paths(output: Path, levels: Sequence[float]) -> list[Path]:
@@ -183,9 +195,10 @@ def interrupted_line(work: WorkDir) -> str:
 
 def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: dict[str, Any], work: WorkDir,
                   client: Client | Executor, clock: "PhaseClock", progress: Progress,
-                  note: Callable[[str], None]) -> tuple[list[int], int, int, int]:
+                  note: Callable[[str], None]) -> tuple[list[int], int, int, int, ScanFill | None]:
     """Bucket, plan, simplify every tile on the cluster, stitch and write each level; return points written
-    per output, tiles, tiles found finished by an earlier attempt, and points kept whole."""
+    per output, tiles, tiles found finished by an earlier attempt, points kept whole and a stratified
+    method's scan-wide fill settings (None for other methods)."""
     clock.lap("start cluster")
     if not TileStore.exists(work.store_path):  # a resumed run keeps the pieces it stored
         TileStore.create(work.store_path, scan.dtype, {"scales": scan.scales.tolist(), "offsets": scan.offsets.tolist()})
@@ -209,7 +222,7 @@ def simplify_scan(scan: Scan, outputs: list[Path], config: RunConfig, settings: 
     written = stitch_outputs(scan, outputs, plan, results, budgets, int(counts.sum()), int(whole.sum()), config,
                              settings, progress)
     clock.lap("stitch and write")
-    return written, len(jobs), len(jobs) - len(pending), int(whole.sum())
+    return written, len(jobs), len(jobs) - len(pending), int(whole.sum()), fill
 
 
 class PhaseClock:
