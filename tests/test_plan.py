@@ -290,6 +290,19 @@ def test_voxels_at_a_measured_size_are_the_counts_and_fall_between_them():
     assert occupied[0, 2] < between < occupied[0, 1]
 
 
+def test_voxels_at_are_np_interps_log_log_values_to_the_bit_at_any_size():
+    """Every tile at once gives what one np.interp per tile gave (the budgets, and so the kept points, of
+    earlier versions), at the measured sizes, between them and past both ends."""
+    from tiling.budgets import voxels_at
+
+    rng = np.random.default_rng(8)
+    sizes = 0.37 * 2.0 ** np.arange(-8, 9)
+    occupied = np.sort(rng.integers(0, 10**6, size=(40, len(sizes))), axis=1)[:, ::-1]
+    for size in [*sizes, *rng.uniform(1e-4, 200, 30), 1e-9, 1e6]:
+        per_tile = [np.exp(np.interp(np.log(size), np.log(sizes), row)) for row in np.log(np.maximum(occupied, 1e-3))]
+        assert np.array_equal(voxels_at(occupied, sizes, size), per_tile), size
+
+
 def test_even_spacing_is_the_voxel_edge_whose_scan_total_is_the_target():
     from tiling.budgets import even_spacing, occupied_voxels, voxels_at
 
