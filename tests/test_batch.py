@@ -81,6 +81,7 @@ def test_run_log_json_reports_success_and_failure(scans, tmp_path):
     assert ok.returncode == 0, ok.stderr
     (done,) = events(ok.stdout)
     assert done["event"] == "done" and done["output_points"] == 300 and done["input_points"] == 3_000
+    assert done["hole_radius_m"] is None and done["floor_tiles"] == 0  # random has no hole cover
     bad = cli("run", str(scans / "a.las"), "--ratio", "2", "-o", str(tmp_path / "b.laz"), "--log-json")
     assert bad.returncode == 2
     (failed,) = events(bad.stdout)

@@ -383,7 +383,8 @@ def test_the_default_holds_its_chamfer_distance_within_the_bound_where_detail_dr
     (its hole radius, a multiple of the fill's spacing, closed no hole there). The run now narrows the radius
     until its survey's estimate is within its `chamfer_bound` (1.3x): measured 1.30x, the bumpy tile still
     keeping more than twice its share, the flat floor's largest gap 0.129 -> 0.104 m; the run's report (and
-    `pipeline run -v`) says the radius was narrowed. A bound of 100 gives the unbounded radius back."""
+    `pipeline run -v`) says the radius was narrowed, and that the flat tile's budget is now its cover floor (so
+    farthest point sampling picks it alone). A bound of 100 gives the unbounded radius back, and no floor."""
     rng = np.random.default_rng(5)
     xy = rng.uniform([0, 0], [16, 4], size=(64_000, 2))
     bumpy = xy[:, 0] >= 12
@@ -401,6 +402,8 @@ def test_the_default_holds_its_chamfer_distance_within_the_bound_where_detail_dr
                               method_parameters=parameters, overwrite=True)
         radius, unbounded = report.hole_radius_m  # what `pipeline run -v` tells
         assert (radius < unbounded and "narrowed" in report.hole_line()) if bound is None else radius == unbounded
+        assert report.floor_tiles == (1 if bound is None else 0) and report.tiles == 2
+        assert ("1 of 2 tiles at their cover floor" in report.hole_line()) == (bound is None)
         out = laspy.read(tmp_path / "out.las")
         kept = np.column_stack([out.x - 500_000, out.y - 4_000_000, out.z])
         chamfers.append(np.mean(cKDTree(kept).query(scan)[0] ** 2) / even_chamfer)

@@ -162,7 +162,8 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
                        "levels": [{"output": str(path), "points": points} for path, points in report.levels],
                        "tiles": report.tiles, "resumed_tiles": report.resumed_tiles,
                        "seconds": round(report.seconds, 3), "phases": report.phases,
-                       "hole_radius_m": None if report.hole_radius_m is None else report.hole_radius_m[0]})
+                       "hole_radius_m": None if report.hole_radius_m is None else report.hole_radius_m[0],
+                       "floor_tiles": report.floor_tiles})
     elif not quiet:
         click.echo(report.summary(settings))
     if verbose:

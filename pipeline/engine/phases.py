@@ -155,13 +155,15 @@ def survey_scan(client: Client | Executor, plan: TilePlan, slices: list[list[Sli
 @dataclass(frozen=True)
 class ScanFill:
     """The scan-wide settings of a stratified method's tiles: (tiles,) detail scales, the hole radius, the
-    radius before the Chamfer bound narrowed it (the same where it did not) and (tiles,) the picks that cover
-    each tile at it (none before they are counted)."""
+    radius before the Chamfer bound narrowed it (the same where it did not), (tiles,) the picks that cover
+    each tile at it (none before they are counted) and how many tiles' budgets are just that count (their
+    floor: no fill fits beside the cover, so farthest point sampling picks them alone)."""
 
     detail_scales: np.ndarray
     cover_radius: float
     unbounded_radius: float
     cover_counts: np.ndarray | None = None
+    floor_tiles: int = 0
 
 
 def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray, target: int, method: Fill,
@@ -235,6 +237,8 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, 
         else:  # spaced evenly: tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
     budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights, extra=holes)
+    if fill is not None:
+        fill = replace(fill, floor_tiles=int(np.count_nonzero((budgets > 0) & (budgets <= floors))))
     return budgets, fill, voxels
 
 

@@ -52,6 +52,7 @@ class RunReport:
     kept_whole: int = 0  # points a class rule kept whole (counted in output_points)
     hole_radius_m: tuple[float, float] | None = None  # a stratified method's hole radius and the radius before the
                                                       # Chamfer bound narrowed it, metres (None for other methods)
+    floor_tiles: int = 0  # a stratified method's tiles at their cover floor, picked by farthest point sampling alone
 
     def summary(self, config: RunConfig) -> str:
         """What `pipeline run` prints: a line per output written, and what a class rule kept whole."""
@@ -72,7 +73,9 @@ class RunReport:
             return None
         radius, unbounded = self.hole_radius_m
         narrowed = f" (narrowed from {unbounded:.4g} m by the Chamfer bound)" if radius < unbounded else ""
-        return f"hole radius: {radius:.4g} m{narrowed}"
+        floors = (f"; {self.floor_tiles} of {self.tiles} tiles at their cover floor, picked by farthest point "
+                  "sampling alone" if self.floor_tiles else "")
+        return f"hole radius: {radius:.4g} m{narrowed}{floors}"
 
 
 def default_output(first_input: Path) -> Path:
@@ -160,7 +163,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     work.remove()
     hole = None if fill is None else (fill.cover_radius * unit.metres, fill.unbounded_radius * unit.metres)
     return RunReport(outputs[0], scan.point_count, written[0], tiles, resumed, clock.total, clock.laps,
-                     tuple(zip(outputs, written)), kept_whole, hole)
+                     tuple(zip(outputs, written)), kept_whole, hole, 0 if fill is None else fill.floor_tiles)
 
 
 def written_paths(output: Path, levels: Sequence[float]) -> list[Path]:
