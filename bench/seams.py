@@ -25,7 +25,7 @@ from pykdtree.kdtree import KDTree
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from quality import DEFAULT_DATA, load_scan, xyz_of  # noqa: E402
+from quality import DEFAULT_DATA, kept_indices, load_scan, xyz_of  # noqa: E402
 
 import pipeline  # noqa: E402
 from pipeline import PipelineNote  # noqa: E402
@@ -60,12 +60,6 @@ def seam_distance(xy: np.ndarray, tiles: np.ndarray, reach: float) -> np.ndarray
     return distance
 
 
-def kept_mask(xyz: np.ndarray, kept_xyz: np.ndarray) -> np.ndarray:
-    """(n,) whether each scan point is in the output (its coordinates, to a micrometre)."""
-    found, _ = KDTree(kept_xyz).query(xyz, k=1)
-    return found < 1e-6
-
-
 def bands(seam: np.ndarray, spacing: float) -> list[np.ndarray]:
     """(n,) masks of the points in each band of BANDS (x `spacing`); the last holds those past its start."""
     return [(seam >= low * spacing) & ((seam < high * spacing) | (high == np.inf))
@@ -88,12 +82,13 @@ def measure(scan: str, ratio: float, methods: list[str], data: Path, work: Path)
     for method in methods:
         output = work / f"{Path(scan).stem}-{method}.laz"
         pipeline.run(path, output, ratio=ratio, method=method, overwrite=True)
-        out = laspy.read(output)
-        kept_xyz = xyz_of(out) - centre
+        kept = np.zeros(len(xyz), dtype=bool)
+        kept[kept_indices(output, las)] = True
+        kept_xyz = xyz[kept] - centre
         spacing = float(np.median(KDTree(kept_xyz).query(kept_xyz, k=2)[0][:, 1]))
         tiles = run_plan(las, xyz, method, ratio).tile_of(xyz[:, :2])
         seam = seam_distance(xyz[:, :2] - centre[:2], tiles, BANDS[-2] * spacing)
-        shares = profile(kept_mask(xyz - centre, kept_xyz), seam, spacing)
+        shares = profile(kept, seam, spacing)
         cells = " | ".join(f"{share:.2f} ({100 * part:.1f} %)" for share, part in shares)
         rows.append(f"| {scan} | {ratio:g} | {method} | {len(np.unique(tiles))} | {spacing:.3g} | {cells} |")
         print(rows[-1], flush=True)

@@ -80,12 +80,13 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf, cover_spacing
     radius = context.cover_radius if context is not None else own_radius(
         tile, trial if strength == 1.0 else trial_fill(tile, planned, loss, phase), planned, cover_spacings,
         chamfer_bound)
-    cover_count = 0 if context is None else context.cover_count
-    # the trial's holes, the fill's first guess, are not covered for a tile at its floor (all of it is cover): on
-    # the extra-bytes file at 0.1, 23 of 33 tiles, whose unused greedy covers made the run 2.50-2.54 s, not 2.31-2.45
-    holes = 0 if planned <= cover_count else len(hole_cover(tile.xyz, trial, core, radius, curve))
-    fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase), planned,
-                                     radius, holes, cover_count)
+    if context is not None and planned <= context.cover_count:  # at its floor: no fill fits beside the cover, so
+        # farthest point sampling, which covers the tile at that count, picks it alone (and the trial's holes,
+        # the fill's first guess, are not covered for nothing: on the extra-bytes file at 0.1, 23 of 33 tiles)
+        fill, cover = np.empty(0, dtype=np.int64), farthest_cover(tile, planned)
+    else:
+        fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase),
+                                         planned, radius, len(hole_cover(tile.xyz, trial, core, radius, curve)))
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
     return Selection.of(tile, topped_up(order, core, budget, rng))
 
@@ -99,7 +100,7 @@ def own_radius(tile: Tile, trial: np.ndarray, budget: int, cover_spacings: float
 
 
 def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget: int, radius: float,
-                       holes: int, cover_count: int = 0) -> tuple[np.ndarray, np.ndarray]:
+                       holes: int) -> tuple[np.ndarray, np.ndarray]:
     """A fill of budget - h core points (`fill_of(count)`) and the cover of the holes it leaves, with h the
     cover's own size: the fill gives up `holes` picks (a first guess, from a fill of the whole budget),
     and gives up more while the cover of what it leaves needs more (a smaller fill leaves more holes).
@@ -108,10 +109,8 @@ def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget:
     rounds run out unsettled, or leave no fill (a budget at about the tile's cover count: its floor), the
     budget is spent on farthest point sampling alone, which covers the tile once the budget reaches its
     cover count (model.cover), and whose picks are spread at any count (a cut greedy cover's are not;
-    nor is a greedy cover of a whole dense tile cheap); a budget at or under `cover_count` (a run's count of
-    it; 0: unknown) goes there at once, as no fill fits beside the cover."""
-    if budget <= cover_count:
-        return np.empty(0, dtype=np.int64), farthest_cover(tile, budget)
+    nor is a greedy cover of a whole dense tile cheap). A run sends a budget at or under the tile's cover count
+    there at once (stratified_selection), as no fill fits beside the cover."""
     holes = min(holes, budget)
     for _ in range(MAX_COVER_ROUNDS):
         if holes == budget:  # no fill left
