@@ -25,7 +25,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from quality import DEFAULT_DATA, kept_indices, load_scan, street_labels, xyz_of  # noqa: E402
+from quality import DEFAULT_DATA, SIMULATED, kept_indices, load_scan, street_labels, xyz_of  # noqa: E402
 
 from model.geometry import point_features  # noqa: E402
 from model.metrics import nearest  # noqa: E402
@@ -77,7 +77,7 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=HERE / "results")
     args = parser.parse_args()
     methods = args.methods.split(",")
-    header = (f"| scan | points by the scan's mean curvature | points | scan's curvature | "
+    header = ("| scan | points by the scan's mean curvature | points | scan's curvature | "
               + " | ".join(f"{m}: mean sq. term / curvature met" for m in methods)
               + f" | part of {methods[0]} CE^2 - {methods[1]} CE^2, x 1e-5 |")
     lines = ["# Where the curvature error is lost", "",
@@ -107,8 +107,8 @@ def main() -> None:
             band = np.digitize(reference, np.quantile(reference, BAND_EDGES))
             groups = {name: band == b for b, name in enumerate(band_names())}
             lines += breakdown_rows(scan, groups, reference, terms)
-            if scan == "street":
-                lines += breakdown_rows(scan, street_labels(las), reference, terms)
+            if scan in SIMULATED:
+                lines += breakdown_rows(scan, street_labels(las, scan), reference, terms)
     args.out.mkdir(parents=True, exist_ok=True)
     lines += ["", *summary]
     (args.out / "ce_breakdown.md").write_text("\n".join(lines) + "\n")

@@ -11,9 +11,11 @@ the surplus dropped at random; Debian's `cloudcompare`). Each result is scored a
 with every metric of model.metrics.quality and the 99th percentile of the scan-to-result distance.
 Pictures (PNG, under --out/quality/): per scan, a kept-to-expected density map per method (points
 kept per cell over ratio x points there, cells of ~100 scan points at the median; grey: under one expected) and, on the simulated
-street, close-ups of a sign, a pole, a car and a kerb per method. On the street every label (and the simulator's finer parts:
-kerb, window, sign) is scored on its own: share of its points kept, and the 99th-percentile distance
-from its points to the nearest kept point, beside FPS's. Writes quality.md and quality.json.
+streets, close-ups of a sign, a pole, a car and a kerb per method. The simulated streets are `street` (a car's
+mobile scan) and `airborne` (the same street flown over at 80 m; not among the defaults): on them every label
+(and the simulator's finer parts: kerb, window, sign) is scored on its own: share of its points kept, and the
+99th-percentile distance from its points to the nearest kept point, beside FPS's. Writes quality.md and
+quality.json.
 """
 from __future__ import annotations
 
@@ -47,6 +49,7 @@ DEFAULT_DATA = HERE.parents[1] / "shared" / "data" / "lidar"
 SCANS = ("bcts_1.laz", "bcts_2.laz", "bcts_3.laz", "bcts_4.laz", "autzen_trim.laz", "lone-star.laz",
          "las_with_several_extra_byte_bloc.laz", "street")
 STREET_POINTS, STREET_SEED = 600_000, 3
+SIMULATED = {"street": "mobile", "airborne": "airborne"}  # scan name -> simulator platform (both STREET_POINTS)
 METHODS = ("learned", "stratified-detail", "stratified", "paper", "fps", "random", "voxel")
 UNTILED, PEER = "fps untiled", "cloudcompare spatial"
 CELL_POINTS = 100  # scan points per density-map cell, on average over occupied cells
@@ -71,11 +74,11 @@ class Row:
 
 
 def load_scan(name: str, data: Path, work: Path) -> tuple[Path, laspy.LasData]:
-    """The scan's path and its points (the simulated street is written once into `work`)."""
-    if name == "street":
-        path = work / "street.las"
+    """The scan's path and its points (a simulated street is written once into `work`)."""
+    if name in SIMULATED:
+        path = work / f"{name}.las"
         if not path.exists():
-            write_street_scan(path, STREET_POINTS, seed=STREET_SEED)
+            write_street_scan(path, STREET_POINTS, seed=STREET_SEED, platform=SIMULATED[name])
     else:
         path = data / name
     return path, laspy.read(path)
@@ -169,22 +172,23 @@ def save_small(figure: Figure, path: Path, dpi: int) -> Path:
     return path
 
 
-def street_labels(las: laspy.LasData) -> dict[str, np.ndarray]:
-    """Label name -> mask of the street's points: Toronto3D-style labels, then the finer parts."""
+def street_labels(las: laspy.LasData, scan: str = "street") -> dict[str, np.ndarray]:
+    """Label name -> mask of a simulated street's points: Toronto3D-style labels, then the finer parts."""
     label = np.asarray(las.user_data)
     masks = {name: label == code for code, name in LABELS.items() if (label == code).any()}
-    parts = surface_parts(STREET_POINTS, STREET_SEED)
+    parts = surface_parts(STREET_POINTS, STREET_SEED, SIMULATED[scan])
     masks.update({name: parts == code for code, name in PARTS.items()})
     return masks
 
 
-def label_rows(ratio: float, xyz: np.ndarray, masks: dict[str, np.ndarray], picks: dict[str, np.ndarray]) -> list[dict]:
+def label_rows(scan: str, ratio: float, xyz: np.ndarray, masks: dict[str, np.ndarray],
+               picks: dict[str, np.ndarray]) -> list[dict]:
     """Per label and method: share of the label's points kept, p99 distance from them to the nearest kept point."""
     rows = []
     for name, mask in masks.items():
         for method, kept in picks.items():
             distance = np.sqrt(nearest(xyz[kept], xyz[mask]).sq_dist)
-            rows.append({"ratio": ratio, "label": name, "method": method, "points": int(mask.sum()),
+            rows.append({"scan": scan, "ratio": ratio, "label": name, "method": method, "points": int(mask.sum()),
                          "share": float(np.isin(np.flatnonzero(mask), kept).sum() / mask.sum() / ratio),
                          "p99": float(np.quantile(distance, 0.99))})
     return rows
@@ -246,9 +250,9 @@ def run_bench(scans: list[str], ratios: list[float], methods: list[str], peer: b
                     print(format_row(rows[-1]), flush=True)
                 stem = f"{Path(scan).stem}-{ratio:g}"
                 density_map(scan, ratio, xyz, picks, pictures / f"density-{stem}.png")
-                if scan == "street":
-                    masks = street_labels(las)
-                    labels += label_rows(ratio, xyz, masks, picks)
+                if scan in SIMULATED:
+                    masks = street_labels(las, scan)
+                    labels += label_rows(scan, ratio, xyz, masks, picks)
                     object_view(ratio, xyz, masks, picks, pictures / f"objects-{stem}.png")
     (out / f"{name}.json").write_text(json.dumps({"rows": [asdict(r) for r in rows], "labels": labels}, indent=1))
     (out / f"{name}.md").write_text(markdown(rows, labels))
@@ -277,14 +281,14 @@ def markdown(rows: list[Row], labels: list[dict]) -> str:
                      f"{r.curvature_error:.5f} | {r.roughness_error:.5f} | {r.sdm:.4f} | {r.normal_consistency:.4f} | "
                      f"{r.chamfer / untiled.chamfer:.2f} | {r.p99 / untiled.p99:.2f} | {r.curvature_error / best_ce:.2f} |")
     if labels:
-        lines += ["", "Street labels: share kept (1 = the ratio's share) and p99 distance from the label's points "
-                  "to the nearest kept point (m).", "",
-                  "| ratio | label | points | method | share | p99 | p99 / FPS (tiled) |", "|" + " --- |" * 7]
+        lines += ["", "Simulated streets' labels: share kept (1 = the ratio's share) and p99 distance from the label's "
+                  "points to the nearest kept point (m).", "",
+                  "| scan | ratio | label | points | method | share | p99 | p99 / FPS (tiled) |", "|" + " --- |" * 8]
         for row in labels:
-            fps = next((x for x in labels if x["ratio"] == row["ratio"] and x["label"] == row["label"]
-                        and x["method"] == "fps"), None)
+            fps = next((x for x in labels if x["scan"] == row["scan"] and x["ratio"] == row["ratio"]
+                        and x["label"] == row["label"] and x["method"] == "fps"), None)
             to_fps = f"{row['p99'] / max(fps['p99'], 1e-12):.2f}" if fps else "—"  # fps not among --methods
-            lines.append(f"| {row['ratio']:g} | {row['label']} | {row['points']:,} | {row['method']} | "
+            lines.append(f"| {row['scan']} | {row['ratio']:g} | {row['label']} | {row['points']:,} | {row['method']} | "
                          f"{row['share']:.2f} | {row['p99']:.3f} | {to_fps} |")
     return "\n".join(lines) + "\n"
 

@@ -183,3 +183,14 @@ def test_demo_simulates_and_simplifies(tmp_path):
     scan, simplified = laspy.read(tmp_path / "demo_street.laz"), laspy.read(tmp_path / "demo_street.simplified.laz")
     assert len(scan.points) == 40_000 and len(simplified.points) == 4_000
     assert np.isin(np.asarray(simplified.gps_time), np.asarray(scan.gps_time)).all()
+
+
+def test_demo_flies_over_the_street_with_the_airborne_preset(tmp_path):
+    """`--platform airborne` simulates the street from 80 m up and simplifies it with the airborne preset
+    (100 m tiles: the whole 40k-point scan in one)."""
+    result = cli("demo", "--out-dir", str(tmp_path), "--points", "40000", "--workers", "1", "--platform", "airborne")
+    assert result.returncode == 0, result.stderr
+    scan = laspy.read(tmp_path / "demo_airborne.laz")
+    simplified = laspy.read(tmp_path / "demo_airborne.simplified.laz")
+    assert len(scan.points) == 40_000 and len(simplified.points) == 4_000 and "(1 tiles" in result.stdout
+    assert np.abs(np.asarray(scan.scan_angle_rank)).max() <= 25

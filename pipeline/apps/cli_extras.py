@@ -18,18 +18,21 @@ from pipeline.progress import Progress
 @click.option("--points", type=int, default=1_500_000, show_default=True, help="Size of the simulated scan.")
 @click.option("--ratio", type=float, default=0.1, show_default=True, help="Fraction of points to keep.")
 @click.option("--workers", "-w", type=int, default=None, help="Dask worker processes. [default: 2]")
-def demo_command(out_dir: Path, points: int, ratio: float, workers: int | None) -> None:
-    """Simulate a mobile-LiDAR street scan and simplify it: the built-in end-to-end example."""
+@click.option("--platform", type=click.Choice(["mobile", "airborne"]), default="mobile", show_default=True,
+              help="Scan the street from a car (mobile) or from an aircraft 80 m above it (airborne).")
+def demo_command(out_dir: Path, points: int, ratio: float, workers: int | None, platform: str) -> None:
+    """Simulate a street scan and simplify it: the built-in end-to-end example."""
     from pipeline.engine.runner import run_scan
     from pipeline.simulate import write_street_scan
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    scan = out_dir / "demo_street.laz"
+    stem = "demo_street" if platform == "mobile" else "demo_airborne"
+    scan = out_dir / f"{stem}.laz"
     if not scan.exists():
-        click.echo(f"simulating {points:,} points of street scan -> {scan}")
-        write_street_scan(scan, n_points=points, seed=0)
-    settings = build_config("toronto3d", ratio=ratio, workers=workers)
-    report = run_scan([scan], out_dir / "demo_street.simplified.laz", settings, overwrite=True,
+        click.echo(f"simulating {points:,} points of {platform} street scan -> {scan}")
+        write_street_scan(scan, n_points=points, seed=0, platform=platform)
+    settings = build_config("toronto3d" if platform == "mobile" else "airborne", ratio=ratio, workers=workers)
+    report = run_scan([scan], out_dir / f"{stem}.simplified.laz", settings, overwrite=True,
                       progress=Progress.for_terminal())
     click.echo(f"{report.output}: {report.output_points:,} of {report.input_points:,} points "
                f"({report.tiles} tiles, {report.seconds:.1f} s)")

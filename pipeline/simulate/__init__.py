@@ -1,4 +1,4 @@
-"""Deterministic mobile-LiDAR street-scan simulator, streamed to LAS/LAZ.
+"""Deterministic LiDAR street-scan simulator (mobile, or airborne over the same street), streamed to LAS/LAZ.
 
 Modules, in the order a scan is made: street (the fixed layout and materials), geometry (rays and the
 scene's primitives), scene (what stands along the street, per 40 m tile), raycast (the drive, the pulses
@@ -13,7 +13,9 @@ street lights, sign poles, a utility line, parked cars, trees).  A rotating 2-D
 profiler, tilted about the vertical axis, fires pulses that are ray-cast against
 analytic primitives (planes, boxes, cylinders, spheres, ellipsoids), so density
 falls off with range, scan lines show as stripes and occlusion is physical.
-Tree crowns are semi-transparent and give up to three returns per pulse.
+Tree crowns are semi-transparent and give up to three returns per pulse. The airborne platform flies the
+same profiler 80 m above the centreline, firing within 25 degrees of the nadir: roofs, crowns, car tops and
+the road dense, facades and poles grazed, wires a few returns per span (raycast.PLATFORMS).
 
 Everything is generated in blocks of scan lines whose random numbers depend only on
 (seed, block index); the scene is generated in 40 m tiles that depend only on

@@ -1,17 +1,20 @@
-"""The drive and the scan: the vehicle's trajectory, each scan line's pulses cast against the ground, the wires
-and the scene, and their returns (up to three through tree crowns) as LAS-ready arrays, block by block."""
+"""The drive and the scan: the platform's trajectory (a car in the street, or an aircraft over it), each scan
+line's pulses cast against the ground, the wires and the scene, and their returns (up to three through tree
+crowns) as LAS-ready arrays, block by block."""
 from __future__ import annotations
 
-from typing import Any, Iterator
+from dataclasses import dataclass
+from typing import Any, Callable, Iterator
 
 import numpy as np
 
 from pipeline.simulate.geometry import NearestHits, RayBundle, SurfaceTable, circle_entry
 from pipeline.simulate.scene import scene_tile
-from pipeline.simulate.street import (ASPHALT, BLOCK_STREAM, CROWN, DRIVE_STREAM, EDGE_Z, GPS_T0, KERB, KERB_FACE,
-                                      LANE_Y, LINE_RATE, LINES_PER_BLOCK, MARK_WHITE, MARK_YELLOW, MAX_RANGE, MIN_RANGE,
-                                      PULSES, ROAD_HALF, SCALE, SENSOR_H, SIDEWALK, SLOPE, SPEED, TAN_TILT, TILE_LENGTH,
-                                      TILT, VEG_SEP, WIRE, WIRES, Y_MAX, stream_rng, wire_height)
+from pipeline.simulate.street import (AIR_SECTOR, AIR_SPEED, ALTITUDE, ASPHALT, BLOCK_STREAM, CROWN, DRIVE_STREAM,
+                                      EDGE_Z, GPS_T0, KERB, KERB_FACE, LANE_Y, LINE_RATE, LINES_PER_BLOCK, MARK_WHITE,
+                                      MARK_YELLOW, MAX_RANGE, MIN_RANGE, PULSES, ROAD_HALF, SCALE, SENSOR_H, SIDEWALK,
+                                      SLOPE, SPEED, TAN_TILT, TILE_LENGTH, TILT, VEG_SEP, WIRE, WIRES, Y_MAX,
+                                      stream_rng, wire_height)
 
 Block = dict[str, np.ndarray]  # a block's returns: LAS dimension name -> (n,) values (rgb: (n, 3))
 
@@ -23,12 +26,22 @@ def drive_phases(seed: int) -> np.ndarray:
 
 
 def trajectory(tau: np.ndarray, phases: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Scanner position at time tau (in scan lines since the start)."""
+    """The car's scanner position at time tau (in scan lines since the start)."""
     sec = tau / LINE_RATE
     x = SPEED * sec + 1.5 * (np.sin(2 * np.pi * sec / 23.0 + phases[0]) - np.sin(phases[0]))
     y = LANE_Y + 0.15 * np.sin(2 * np.pi * sec / 31.0 + phases[1])
     z = (SENSOR_H + 0.012 * np.sin(2 * np.pi * sec / 1.7 + phases[2])
          + 0.006 * np.sin(2 * np.pi * sec / 0.45 + phases[3]))
+    return x, y, z
+
+
+def flight(tau: np.ndarray, phases: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The aircraft's scanner position at time tau (in scan lines since the start): along the street's centreline
+    at ALTITUDE, drifting a metre across and bobbing half a metre in the air."""
+    sec = tau / LINE_RATE
+    x = AIR_SPEED * sec + 2.0 * (np.sin(2 * np.pi * sec / 17.0 + phases[0]) - np.sin(phases[0]))
+    y = 1.0 * np.sin(2 * np.pi * sec / 29.0 + phases[1])
+    z = ALTITUDE + 0.5 * np.sin(2 * np.pi * sec / 7.0 + phases[2]) + 0.1 * np.sin(2 * np.pi * sec / 1.3 + phases[3])
     return x, y, z
 
 
@@ -68,18 +81,36 @@ def cast_wires(r: RayBundle, idx: np.ndarray, hits: NearestHits, reg: SurfaceTab
 
 
 THETA = 2 * np.pi * (np.arange(PULSES) + 0.5) / PULSES
-SIDE_PULSES = (np.nonzero(np.cos(THETA) < 0)[0], np.nonzero(np.cos(THETA) > 0)[0])
 # LAS convention: negative scan angles to the left; beams above horizontal saturate.
 SCAN_ANGLE = np.clip(-(np.mod(np.degrees(THETA) - 90.0, 360.0) - 180.0), -90, 90).round()
+DOWNWARD = np.sin(THETA) < -np.cos(np.radians(AIR_SECTOR))  # within AIR_SECTOR of the nadir
+
+
+@dataclass(frozen=True)
+class Platform:
+    """What carries the scanner: its position over time (tau, phases) -> x, y, z, and the pulses of a mirror
+    turn it fires to each side (left, right: indices into THETA)."""
+
+    trajectory: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+    side_pulses: tuple[np.ndarray, np.ndarray]
+
+
+PLATFORMS = {
+    # a car in the right lane, its profiler turning all the way round (Toronto3D-like)
+    "mobile": Platform(trajectory, (np.nonzero(np.cos(THETA) < 0)[0], np.nonzero(np.cos(THETA) > 0)[0])),
+    # an aircraft over the centreline, the same tilted profiler firing only within AIR_SECTOR of the nadir
+    "airborne": Platform(flight, (np.nonzero(DOWNWARD & (np.cos(THETA) < 0))[0],
+                                  np.nonzero(DOWNWARD & (np.cos(THETA) > 0))[0])),
+}
 
 
 def scan_side(seed: int, side: int, lines: np.ndarray, phases: np.ndarray, reg: SurfaceTable,
-              rng: np.random.Generator) -> dict[str, Any]:
+              rng: np.random.Generator, platform: Platform) -> dict[str, Any]:
     """Cast one side's rays of a block; returns per-return arrays (unsorted)."""
-    p = SIDE_PULSES[side]
+    p = platform.side_pulses[side]
     ray_id = (lines[:, None] * PULSES + p[None, :]).ravel()
     tau = ray_id / PULSES + 0.5 / PULSES
-    ox, oy, oz = trajectory(tau, phases)
+    ox, oy, oz = platform.trajectory(tau, phases)
     th = THETA[ray_id % PULSES]
     c, sn = np.cos(th), np.sin(th)
     r = RayBundle(ox, oy, oz, -np.sin(TILT) * c, np.cos(TILT) * c, sn)
@@ -148,12 +179,12 @@ def pulse_returns(r: RayBundle, ray_id: np.ndarray, hits: NearestHits, veg_in: n
         d=(r.dx[rows], r.dy[rows], r.dz[rows]))
 
 
-def scan_block(seed: int, j: int, phases: np.ndarray) -> Block:
+def scan_block(seed: int, j: int, phases: np.ndarray, platform: Platform = PLATFORMS["mobile"]) -> Block:
     """All returns of scan lines [j B, (j + 1) B) in time order, as LAS-ready arrays."""
     rng = stream_rng(seed, BLOCK_STREAM, j)
     lines = np.arange(j * LINES_PER_BLOCK, (j + 1) * LINES_PER_BLOCK)
     reg = SurfaceTable()
-    sides = [scan_side(seed, s, lines, phases, reg, rng) for s in (0, 1)]
+    sides = [scan_side(seed, s, lines, phases, reg, rng, platform) for s in (0, 1)]
     cat = {k: np.concatenate([sd[k] for sd in sides])
            for k in ("t", "ret", "nret", "surf", "cos", "gid")}
     o = [np.concatenate([sd["o"][a] for sd in sides]) for a in range(3)]
@@ -187,14 +218,16 @@ def scan_block(seed: int, j: int, phases: np.ndarray) -> Block:
     )
 
 
-def scan_blocks(n_points: int, seed: int) -> Iterator[Block]:
-    """Yield scan blocks in order, trimming the last so exactly n_points are produced."""
+def scan_blocks(n_points: int, seed: int, platform: str = "mobile") -> Iterator[Block]:
+    """Yield scan blocks in order, trimming the last so exactly n_points are produced (`platform`: a key of
+    PLATFORMS)."""
+    carrier = PLATFORMS[platform]
     phases = drive_phases(seed)
     left, j = n_points, 0
     while left > 0:
         # Misses are inf distances; inf/nan arithmetic on them is expected.
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            block = scan_block(seed, j, phases)
+            block = scan_block(seed, j, phases, carrier)
         size = block["X"].size
         if size > left:
             block = {k: v[:left] for k, v in block.items()}

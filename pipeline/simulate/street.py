@@ -28,6 +28,10 @@ TAN_TILT = float(np.tan(TILT))
 SPEED = 10.0           # mean vehicle speed, m/s (36 km/h)
 LANE_Y = -1.75         # vehicle drives in the right lane of a road along +x
 SENSOR_H = 2.4         # scanner height above the road crown
+# The airborne platform: the same profiler flown along the centreline, firing only towards the ground.
+ALTITUDE = 80.0        # flying height above the road crown, m
+AIR_SPEED = 20.0       # ground speed, m/s: 0.2 m between scan lines, 0.42 m between pulses at the nadir
+AIR_SECTOR = 25.0      # pulses fired within this many degrees of the nadir: a 75 m swath, inside Y_MAX
 MIN_RANGE, MAX_RANGE = 2.5, 120.0
 LINES_PER_BLOCK = 50
 

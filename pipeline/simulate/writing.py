@@ -9,7 +9,7 @@ import laspy
 import numpy as np
 
 from pipeline.io.atomic import atomic_output
-from pipeline.simulate.raycast import Block, scan_blocks
+from pipeline.simulate.raycast import PLATFORMS, Block, scan_blocks
 from pipeline.simulate.street import CREATION_DATE, EPSG, ORIGIN, POINT_SOURCE_ID, SCALE
 
 
@@ -45,21 +45,21 @@ def point_record(parts: list[Block], header: laspy.LasHeader) -> laspy.ScaleAwar
     return rec
 
 
-def surface_parts(n_points: int, seed: int = 0) -> np.ndarray:
-    """(n_points,) uint8 part code (PARTS) of each point of write_street_scan(path, n_points, seed), in file
-    order: the scan is regenerated, so this costs about as long as writing it."""
-    return np.concatenate([block["surface_part"] for block in scan_blocks(n_points, seed)])
+def surface_parts(n_points: int, seed: int = 0, platform: str = "mobile") -> np.ndarray:
+    """(n_points,) uint8 part code (PARTS) of each point of write_street_scan(path, n_points, seed, platform=...),
+    in file order: the scan is regenerated, so this costs about as long as writing it."""
+    return np.concatenate([block["surface_part"] for block in scan_blocks(n_points, seed, platform)])
 
 
 def write_street_scan(path: str | os.PathLike, n_points: int = 1_500_000, seed: int = 0,
-                      chunk_points: int = 500_000) -> int:
-    """Write a simulated mobile-LiDAR street scan of n_points points to a LAS/LAZ file (by suffix); return the
-    count written.
+                      chunk_points: int = 500_000, platform: str = "mobile") -> int:
+    """Write a simulated LiDAR scan of the street, n_points points, to a LAS/LAZ file (by suffix); return the
+    count written. `platform`: "mobile" (a car in the street, about 7.5 k points per metre of street) or
+    "airborne" (an aircraft 80 m above it, about 830 points per metre: some 12 pulses per square metre).
 
-    The count is exactly n_points; the street grows with n_points (about 7.5 k points
-    per metre).  Same (n_points, seed) gives a byte-identical file for any chunk_points,
-    which only bounds how many points are held in memory before each write.  The file
-    is written under a temporary name in the same folder and renamed when complete.
+    The count is exactly n_points; the street grows with n_points.  Same (n_points, seed, platform) gives a
+    byte-identical file for any chunk_points, which only bounds how many points are held in memory before
+    each write.  The file is written under a temporary name in the same folder and renamed when complete.
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -67,13 +67,15 @@ def write_street_scan(path: str | os.PathLike, n_points: int = 1_500_000, seed: 
         raise ValueError(f"path must end in .las or .laz, got {path.name!r}")
     if n_points < 1 or chunk_points < 1 or seed < 0:
         raise ValueError("n_points and chunk_points must be >= 1 and seed >= 0")
+    if platform not in PLATFORMS:
+        raise ValueError(f"platform must be one of {sorted(PLATFORMS)}, got {platform!r}")
     header = street_header()
     written = 0
     with atomic_output(path) as temporary, \
             laspy.open(temporary, mode="w", header=header, do_compress=suffix == ".laz") as writer:
         pending: list[Block] = []
         held = 0
-        for block in scan_blocks(n_points, seed):
+        for block in scan_blocks(n_points, seed, platform):
             pending.append(block)
             held += block["X"].size
             if held >= chunk_points:
