@@ -142,10 +142,14 @@ def density_map(scan: str, ratio: float, xyz: np.ndarray, picks: dict[str, np.nd
         return np.bincount(ij[:, 0] * shape[1] + ij[:, 1], minlength=shape[0] * shape[1]).reshape(shape)
 
     expected = counts(xyz) * ratio
-    columns = len(picks)
+    panels = len(picks)
     aspect = shape[1] / shape[0]
-    figure = Figure(figsize=(3.4 * columns, max(2.2, 3.4 * aspect) + 0.6), layout="constrained")
-    axes = figure.subplots(1, columns, squeeze=False)[0]
+    if aspect < 0.5:  # a long strip (a corridor, a flight line): panels one above the other, as wide as the page
+        figure = Figure(figsize=(12.0, panels * (12.0 * aspect + 0.4) + 0.6), layout="constrained")
+        axes = figure.subplots(panels, 1, squeeze=False)[:, 0]
+    else:
+        figure = Figure(figsize=(3.4 * panels, max(2.2, 3.4 * aspect) + 0.6), layout="constrained")
+        axes = figure.subplots(1, panels, squeeze=False)[0]
     image = None
     for ax, (method, kept) in zip(axes, picks.items()):
         with np.errstate(divide="ignore", invalid="ignore"):  # an empty cell shows as -2 (a quarter or less)
@@ -287,7 +291,8 @@ def markdown(rows: list[Row], labels: list[dict]) -> str:
         for row in labels:
             fps = next((x for x in labels if x["scan"] == row["scan"] and x["ratio"] == row["ratio"]
                         and x["label"] == row["label"] and x["method"] == "fps"), None)
-            to_fps = f"{row['p99'] / max(fps['p99'], 1e-12):.2f}" if fps else "—"  # fps not among --methods
+            to_fps = (f"{row['p99'] / fps['p99']:.2f}" if fps and fps["p99"] > 0  # fps not among --methods, or
+                      else "—")                                              # every point of a tiny label kept
             lines.append(f"| {row['scan']} | {row['ratio']:g} | {row['label']} | {row['points']:,} | {row['method']} | "
                          f"{row['share']:.2f} | {row['p99']:.3f} | {to_fps} |")
     return "\n".join(lines) + "\n"
