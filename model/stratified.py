@@ -80,15 +80,21 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf, cover_spacing
     radius = context.cover_radius if context is not None else own_radius(
         tile, trial if strength == 1.0 else trial_fill(tile, planned, loss, phase), planned, cover_spacings,
         chamfer_bound)
-    if context is not None and planned <= context.cover_count:  # at its floor: no fill fits beside the cover, so
-        # farthest point sampling, which covers the tile at that count, picks it alone (and the trial's holes,
-        # the fill's first guess, are not covered for nothing: on the extra-bytes file at 0.1, 23 of 33 tiles)
+    if context is not None and at_cover_floor(planned, context.cover_count):  # the trial's holes, the fill's first
+        # guess, are not covered for nothing there (on the extra-bytes file at 0.1, 23 of 33 tiles)
         fill, cover = np.empty(0, dtype=np.int64), farthest_cover(tile, planned)
     else:
         fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase),
                                          planned, radius, len(hole_cover(tile.xyz, trial, core, radius, curve)))
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
     return Selection.of(tile, topped_up(order, core, budget, rng))
+
+
+def at_cover_floor(budget: int | np.ndarray, cover_count: int | np.ndarray) -> bool | np.ndarray:
+    """Whether a tile's budget (or (tiles,) budgets) is at or under its floor, the picks that cover it at the hole
+    radius: no fill fits beside the cover, so farthest point sampling, which covers the tile at that count,
+    picks it alone."""
+    return np.asarray(budget) <= np.asarray(cover_count)
 
 
 def own_radius(tile: Tile, trial: np.ndarray, budget: int, cover_spacings: float, chamfer_bound: float) -> float:

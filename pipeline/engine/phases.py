@@ -16,6 +16,7 @@ from model.cover import grown_sample
 from model.methods import Fill
 from model.rules import kept_count
 from model.selection import VoxelCounts
+from model.stratified import at_cover_floor
 from pipeline.config import RunConfig, parse_size
 from pipeline.engine.classes import ClassRule
 from pipeline.engine.execute import map_tasks
@@ -238,7 +239,7 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, 
             weights = coverage_weights(occupied, sizes, target)
     budgets = grouped_budgets(counts, config.ratio, plan.budget_groups(), floors=floors, weights=weights, extra=holes)
     if fill is not None:
-        fill = replace(fill, floor_tiles=int(np.count_nonzero((budgets > 0) & (budgets <= floors))))
+        fill = replace(fill, floor_tiles=int(np.count_nonzero((budgets > 0) & at_cover_floor(budgets, floors))))
     return budgets, fill, voxels
 
 

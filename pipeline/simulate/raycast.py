@@ -179,7 +179,7 @@ def pulse_returns(r: RayBundle, ray_id: np.ndarray, hits: NearestHits, veg_in: n
         d=(r.dx[rows], r.dy[rows], r.dz[rows]))
 
 
-def scan_block(seed: int, j: int, phases: np.ndarray, platform: Platform = PLATFORMS["mobile"]) -> Block:
+def scan_block(seed: int, j: int, phases: np.ndarray, platform: Platform) -> Block:
     """All returns of scan lines [j B, (j + 1) B) in time order, as LAS-ready arrays."""
     rng = stream_rng(seed, BLOCK_STREAM, j)
     lines = np.arange(j * LINES_PER_BLOCK, (j + 1) * LINES_PER_BLOCK)
