@@ -25,7 +25,7 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from quality import DEFAULT_DATA, SIMULATED, kept_indices, load_scan, street_labels, xyz_of  # noqa: E402
+from quality import DEFAULT_DATA, kept_indices, load_scan, simulated, street_labels, xyz_of  # noqa: E402
 
 from model.geometry import point_features  # noqa: E402
 from model.metrics import nearest  # noqa: E402
@@ -107,7 +107,7 @@ def main() -> None:
             band = np.digitize(reference, np.quantile(reference, BAND_EDGES))
             groups = {name: band == b for b, name in enumerate(band_names())}
             lines += breakdown_rows(scan, groups, reference, terms)
-            if scan in SIMULATED:
+            if simulated(scan):
                 lines += breakdown_rows(scan, street_labels(las, scan), reference, terms)
     args.out.mkdir(parents=True, exist_ok=True)
     lines += ["", *summary]

@@ -12,7 +12,8 @@ with every metric of model.metrics.quality and the 99th percentile of the scan-t
 Pictures (PNG, under --out/quality/): per scan, a kept-to-expected density map per method (points
 kept per cell over ratio x points there, cells of ~100 scan points at the median; grey: under one expected) and, on the simulated
 streets, close-ups of a sign, a pole, a car and a kerb per method. The simulated streets are `street` (a car's
-mobile scan) and `airborne` (the same street flown over at 80 m; not among the defaults): on them every label
+mobile scan) and `airborne` (the same street flown over at 80 m; not among the defaults), each another street
+with `:SEED` after its name (`street:7`: the simulator's scene and drive from seed 7, not 3): on them every label
 (and the simulator's finer parts: kerb, window, sign) is scored on its own: share of its points kept, and the
 99th-percentile distance from its points to the nearest kept point, beside FPS's. Writes quality.md and
 quality.json.
@@ -73,12 +74,30 @@ class Row:
     normal_consistency: float
 
 
+def simulated(name: str) -> tuple[str, int] | None:
+    """The simulator platform and seed of a simulated scan's name (`street`, `airborne`, either with `:SEED`);
+    None for a file's name."""
+    base, colon, seed = name.partition(":")
+    if base not in SIMULATED:
+        return None
+    if colon and not seed.isdigit():
+        raise SystemExit(f"{name}: a simulated scan's seed is a whole number (street:7)")
+    return SIMULATED[base], int(seed) if colon else STREET_SEED
+
+
+def file_stem(name: str) -> str:
+    """A scan's name as a file name's stem (street:7 -> street-s7)."""
+    return Path(name.replace(":", "-s")).stem
+
+
 def load_scan(name: str, data: Path, work: Path) -> tuple[Path, laspy.LasData]:
     """The scan's path and its points (a simulated street is written once into `work`)."""
-    if name in SIMULATED:
-        path = work / f"{name}.las"
+    street = simulated(name)
+    if street is not None:
+        path = work / f"{file_stem(name)}.las"
         if not path.exists():
-            write_street_scan(path, STREET_POINTS, seed=STREET_SEED, platform=SIMULATED[name])
+            platform, seed = street
+            write_street_scan(path, STREET_POINTS, seed=seed, platform=platform)
     else:
         path = data / name
     return path, laspy.read(path)
@@ -180,7 +199,11 @@ def street_labels(las: laspy.LasData, scan: str = "street") -> dict[str, np.ndar
     """Label name -> mask of a simulated street's points: Toronto3D-style labels, then the finer parts."""
     label = np.asarray(las.user_data)
     masks = {name: label == code for code, name in LABELS.items() if (label == code).any()}
-    parts = surface_parts(STREET_POINTS, STREET_SEED, SIMULATED[scan])
+    street = simulated(scan)
+    if street is None:
+        raise ValueError(f"{scan} is not a simulated street: it has no labels")
+    platform, seed = street
+    parts = surface_parts(STREET_POINTS, seed, platform)
     masks.update({name: parts == code for code, name in PARTS.items()})
     return masks
 
@@ -252,9 +275,9 @@ def run_bench(scans: list[str], ratios: list[float], methods: list[str], peer: b
                 for method, kept in picks.items():
                     rows.append(score(scan, ratio, method, xyz, kept, features))
                     print(format_row(rows[-1]), flush=True)
-                stem = f"{Path(scan).stem}-{ratio:g}"
+                stem = f"{file_stem(scan)}-{ratio:g}"
                 density_map(scan, ratio, xyz, picks, pictures / f"density-{stem}.png")
-                if scan in SIMULATED:
+                if simulated(scan):
                     masks = street_labels(las, scan)
                     labels += label_rows(scan, ratio, xyz, masks, picks)
                     object_view(ratio, xyz, masks, picks, pictures / f"objects-{stem}.png")
