@@ -19,6 +19,7 @@ import pyproj
 import pytest
 
 from pipeline.errors import PipelineError
+from pipeline.io.ply_source import PlySource
 from tests.conftest import shared_file
 from tests.test_cli import assert_one_line_error, cli
 
@@ -156,7 +157,15 @@ def write_ply(path: Path, xyz: np.ndarray) -> Path:
 def test_non_finite_ply_coordinates(tmp_path, value):
     xyz = scattered(100)
     xyz[37, 1] = value
-    fails_cleanly(tmp_path, [write_ply(tmp_path / "in.ply", xyz)], "in.ply", "NaN or infinite")
+    fails_cleanly(tmp_path, [write_ply(tmp_path / "in.ply", xyz)], "in.ply", "NaN or infinite y coordinate at vertex",
+                  "37")
+
+
+def test_a_non_finite_ply_coordinate_is_named_by_its_vertex_past_the_first_chunk(tmp_path):
+    xyz = scattered(2_000)
+    xyz[1_537, 2] = math.nan
+    with pytest.raises(PipelineError, match="NaN or infinite z coordinate at vertex 1537 "):
+        PlySource(write_ply(tmp_path / "in.ply", xyz), chunk=500)
 
 
 def test_a_ply_too_wide_for_the_millimetre_grid(tmp_path):

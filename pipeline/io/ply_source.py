@@ -71,7 +71,9 @@ class PlySource:
                 column = self._column(name, start, start + chunk)
                 low, high = float(column.min()), float(column.max())
                 if not (np.isfinite(low) and np.isfinite(high)):
-                    raise PipelineError(f"{self.path}: NaN or infinite coordinates near vertex {start}")
+                    vertex = start + int(np.flatnonzero(~np.isfinite(column))[0])
+                    raise PipelineError(f"{self.path}: NaN or infinite {name} coordinate at vertex {vertex} "
+                                        f"(counting from 0)")
                 mins[axis], maxs[axis] = min(mins[axis], low), max(maxs[axis], high)
         if self.point_count:
             header.offsets = np.floor(mins)
