@@ -157,8 +157,8 @@ def write_ply(path: Path, xyz: np.ndarray) -> Path:
 def test_non_finite_ply_coordinates(tmp_path, value):
     xyz = scattered(100)
     xyz[37, 1] = value
-    fails_cleanly(tmp_path, [write_ply(tmp_path / "in.ply", xyz)], "in.ply", "NaN or infinite y coordinate at vertex",
-                  "37")
+    source = write_ply(tmp_path / "in.ply", xyz)
+    fails_cleanly(tmp_path, [source], "in.ply", "NaN or infinite y coordinate at vertex 37 ")
 
 
 def test_a_non_finite_ply_coordinate_is_named_by_its_vertex_past_the_first_chunk(tmp_path):
