@@ -34,6 +34,7 @@ from model.chamfer_bound import sample_rows  # noqa: E402
 from model.cover import cover_order, insertion_radii  # noqa: E402
 from model.geometry import nearest_distance  # noqa: E402
 from model.rules import kept_count  # noqa: E402
+from tiling.budgets import pooled_quantile  # noqa: E402
 from pipeline import PipelineNote  # noqa: E402
 
 MAX_SHARE_MULTIPLE = 4  # how far past its share a tile's sampling runs
@@ -71,6 +72,8 @@ def one_radius(curves: list[TileCurve], target: int) -> float:
     def total(radius: float) -> int:
         return sum(curve.picks_at(radius) for curve in curves)
     high = max(float(curve.radii[1]) for curve in curves if len(curve.radii) > 1)  # one pick each, or fewer
+    if total(high) > target:
+        raise SystemExit(f"{len(curves)} tiles need more than the {target} points kept to have one each")
     low = high
     while total(low) <= target and low > 1e-12:
         low /= 2
@@ -81,15 +84,12 @@ def one_radius(curves: list[TileCurve], target: int) -> float:
 
 
 def pooled(curves: list[TileCurve], picks: list[int]) -> tuple[float, float]:
-    """p99 and mean squared distance of the tiles' samples to their first `picks`, each sample point weighing its
-    tile's core points over its sample's."""
+    """p99 and mean squared distance of the tiles' samples to their first `picks`, each sample standing for its
+    tile's core points."""
     distance = [curve.distances(count) for curve, count in zip(curves, picks)]
-    weight = np.concatenate([np.full(len(d), len(c.core) / len(d)) for c, d in zip(curves, distance)])
-    values = np.concatenate(distance)
-    order = np.argsort(values)
-    cumulative = np.cumsum(weight[order]) / weight.sum()
-    p99 = float(values[order][min(np.searchsorted(cumulative, 0.99), len(values) - 1)])
-    return p99, float((weight * values ** 2).sum() / weight.sum())
+    cores = np.array([len(curve.core) for curve in curves])
+    msq = float(sum(size * np.mean(d ** 2) for size, d in zip(cores, distance)) / cores.sum())
+    return pooled_quantile(distance, cores, 0.99), msq
 
 
 def measure(scan: str, ratio: float, data: Path, work: Path) -> str:

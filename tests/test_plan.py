@@ -250,16 +250,20 @@ def test_saliency_weights_are_the_sums_of_one_pass_keep_weights():
     np.testing.assert_array_equal(flat, counts) and np.testing.assert_array_equal(flat_scales, 0)
 
 
-def test_pooled_median_of_quantile_sketches_matches_the_union():
+def test_pooled_quantile_of_quantile_sketches_matches_the_union():
     from model.geometry import DISTANCE_QUANTILES
-    from tiling.budgets import pooled_median
+    from tiling.budgets import pooled_quantile
 
     rng = np.random.default_rng(2)
     samples = [rng.lognormal(0, 0.3, 20_000), rng.lognormal(1, 0.3, 5_000), np.empty(0)]
     sketches = [np.quantile(s, DISTANCE_QUANTILES) if len(s) else s for s in samples]
-    pooled = pooled_median(sketches, np.array([len(s) for s in samples]))
+    pooled = pooled_quantile(sketches, np.array([len(s) for s in samples]))
     assert abs(pooled - np.median(np.concatenate(samples))) < 0.03
-    assert pooled_median([np.empty(0)], np.array([0])) == 0.0
+    assert pooled_quantile([np.empty(0)], np.array([0])) == 0.0
+    # samples given by their values, each standing for another size (here 1 and 4 points a value)
+    union = np.concatenate([samples[0], np.repeat(samples[1], 4)])
+    high = pooled_quantile(samples[:2], np.array([20_000, 20_000]), 0.99)
+    assert abs(high - np.quantile(union, 0.99)) < 0.01 * np.quantile(union, 0.99)
 
 
 def test_far_apart_sites_keep_fine_cells_and_tiles_within_the_budget():

@@ -227,9 +227,10 @@ def saliency_weights(counts: np.ndarray, levels: np.ndarray, loss_sums: np.ndarr
     return counts + scales * np.asarray(loss_sums, dtype=np.float64), scales
 
 
-def pooled_median(quantiles: list[np.ndarray], sizes: np.ndarray) -> float:
-    """The median of the union of samples, each given by evenly spaced quantiles (its own length may be 0)
-    and its sample size (sizes: (samples,)); 0 when every sample is empty."""
+def pooled_quantile(quantiles: list[np.ndarray], sizes: np.ndarray, level: float = 0.5) -> float:
+    """The `level` quantile (the median by default) of the union of samples, each given by evenly spaced
+    quantiles or by its values (its own length may be 0) and the size it stands for (sizes: (samples,)); 0 when
+    every sample is empty."""
     values = [q for q in quantiles if len(q)]
     if not values:
         return 0.0
@@ -237,7 +238,7 @@ def pooled_median(quantiles: list[np.ndarray], sizes: np.ndarray) -> float:
     values_flat = np.concatenate(values)
     order = np.argsort(values_flat, kind="stable")
     cumulative = np.cumsum(weights[order])
-    return float(values_flat[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
+    return float(values_flat[order][np.searchsorted(cumulative, level * cumulative[-1])])
 
 
 def nested_budgets(parent: np.ndarray, total: int) -> np.ndarray:

@@ -32,7 +32,7 @@ from pipeline.progress import Progress, counted
 from tiling.assemble import level_parts, seam_rejections
 from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
 from tiling.budgets import (count_at, coverage_weights, even_spacing, feasible_radius, grouped_budgets, hole_voxels,
-                            least_covers, nested_budgets, pooled_median, radius_grid, saliency_weights)
+                            least_covers, nested_budgets, pooled_quantile, radius_grid, saliency_weights)
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice
 
@@ -180,7 +180,7 @@ def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray
     counts, levels = np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys])
     loss_sums = np.array([s.loss_sum for s in surveys])
     weights, scales = saliency_weights(counts, levels, loss_sums, method.loss_strength())
-    spacing = pooled_median([s.spacings for s in surveys], np.array([s.picks for s in surveys]))
+    spacing = pooled_quantile([s.spacings for s in surveys], np.array([s.picks for s in surveys]))
     widest = max(method.cover_spacings * spacing, even_spacing(occupied, sizes, target))
     default_weights = saliency_weights(counts, levels, loss_sums)[0]
     radius = chamfer_radius(surveys, lambda r: planned(r, default_weights), method.chamfer_bound, widest,
