@@ -7,14 +7,15 @@ import pytest
 from scipy.spatial import cKDTree
 
 from model.baselines import fps_simplify
-from model.chamfer_bound import COVERED_SQUARE, bounded_radius, estimated_chamfer, mean_clipped_square
-from model.cover import cover_order
+from model.chamfer_bound import (COVERED_SQUARE, bounded_radius, estimated_chamfer, mean_clipped_square,
+                                 mean_square_distance)
+from model.cover import cover_counts, cover_order
 from model.geometry import DISTANCE_QUANTILES
 from model.methods import Learned
 from model.rules import kept_count
 from model.selection import Tile
-from pipeline.engine.tasks import survey_fill
-from tiling.budgets import feasible_radius, least_covers, radius_grid
+from pipeline.engine.tasks import survey_fill, surveyed_picks
+from tiling.budgets import feasible_radius, last_over, least_covers, one_radius_counts, radius_grid
 
 
 def test_a_covered_point_counts_its_share_of_the_radius_and_a_near_one_its_own_distance():
@@ -39,9 +40,10 @@ def test_the_radius_is_kept_where_the_bound_holds_and_narrowed_to_where_it_just_
     assert bounded_radius(estimate, 4.0, widest=3.0, finest=2.5) == 2.5  # never below the finest
 
 
-def test_a_survey_measures_its_fills_gaps_and_an_even_thinnings_chamfer_on_a_sample_of_the_core():
+def test_a_survey_measures_its_fills_gaps_and_keeps_its_sample_and_farthest_point_picks():
     """A 20k-point tile with a sparse half: the quantiles are those of the sample's distances to the trial
-    fill, and the even Chamfer is the sample's mean squared distance to as many farthest point picks."""
+    fill, and the survey keeps the sample and as many farthest point picks, in their order, for the run's
+    reference."""
     rng = np.random.default_rng(2)
     xyz = np.concatenate([rng.uniform([0, 0, 0], [4, 4, 0.01], size=(18_000, 3)),
                           rng.uniform([4, 0, 0], [8, 4, 0.01], size=(2_000, 3))])
@@ -50,8 +52,8 @@ def test_a_survey_measures_its_fills_gaps_and_an_even_thinnings_chamfer_on_a_sam
     sizes = 0.05 * 2.0 ** np.arange(5)
     survey = survey_fill(tile, xyz, budget, sizes, Learned())
     sample = xyz[::len(xyz) // 4096]
-    even = cover_order(xyz, budget)
-    assert survey.even_chamfer == pytest.approx(np.mean(cKDTree(xyz[even]).query(sample)[0] ** 2))
+    even = cover_order(xyz, surveyed_picks(budget, len(xyz)))
+    assert len(even) == int(np.ceil(1.5 * budget)) and np.array_equal(survey.sample_xyz, sample) and np.array_equal(survey.even_xyz, xyz[even])
     assert len(survey.gaps) == len(DISTANCE_QUANTILES) and np.all(np.diff(survey.gaps) >= 0)
     assert survey.gaps[-1] > 2 * survey.gaps[32]  # the sparse half's far points
     assert len(survey.covers) == len(radius_grid(sizes))
@@ -78,9 +80,43 @@ def test_a_tile_on_its_own_keeps_the_bound_from_its_own_trial_fill():
 
 
 def test_the_least_covers_read_a_short_survey_as_one_more_than_its_share_and_fit_the_target_from_some_radius():
-    """A survey samples its share of picks, so a count it knows is at most that share: -1 means more."""
+    """A survey samples some picks, so a count it knows is at most their number: -1 means more."""
     covers = np.array([[-1, -1, 28, 10], [-1, 24, 20, 5]])  # (tiles, radii), shares 30 and 25
-    least = least_covers(covers, shares=np.array([30, 25]), counts=np.array([30, 200]))
+    least = least_covers(covers, sampled=np.array([30, 25]), counts=np.array([30, 200]))
     assert least.tolist() == [[30, 30, 28, 10], [26, 24, 20, 5]]  # at most the tile's points
     radii = np.array([0.5, 1.0, 2.0, 4.0])
     assert [feasible_radius(least, radii, target) for target in (60, 54, 48, 10)] == [0.5, 1.0, 2.0, np.inf]
+
+
+def test_one_radius_counts_are_read_between_the_grid_radii_where_the_total_crosses_the_target():
+    """Totals 400, 200, 100 at three radii: a target of 200 is the middle column; 141 lies halfway (in log)
+    between it and the last, so each tile's count is the geometric mean of its two; off the grid, the end
+    column."""
+    least = np.array([[300, 150, 50], [100, 50, 50]])
+    assert [last_over(least, target) for target in (500, 300, 150, 99)] == [-1, 0, 1, 2]
+    assert one_radius_counts(least, 200).tolist() == [150.0, 50.0]
+    assert one_radius_counts(least, 141) == pytest.approx([np.sqrt(150 * 50), 50.0], rel=2e-2)
+    assert one_radius_counts(least, 1_000).tolist() == [300.0, 100.0]
+    assert one_radius_counts(least, 50).tolist() == [50.0, 50.0]
+
+
+def test_one_covering_radius_stands_for_one_farthest_point_sampling_where_the_tiles_shares_do_not():
+    """A dense plane and, beside it, a tile of scattered points through a volume (stray returns): each tile's
+    farthest point sampling at its share of the count gives a mean squared distance 3.8x one sampling of both
+    (the strays' 400 picks leave them far apart); each run to the one radius at which their counts add up to
+    the count, 1.04x."""
+    rng = np.random.default_rng(1)
+    plane = np.column_stack([rng.uniform(0, 4, 40_000), rng.uniform(0, 4, 40_000), 0.01 * rng.normal(size=40_000)])
+    strays = np.column_stack([rng.uniform(4, 16, 4_000), rng.uniform(0, 4, 4_000), rng.uniform(0, 4, 4_000)])
+    tiles, points, target = [plane, strays], np.array([40_000, 4_000]), 4_400
+    scan = np.concatenate(tiles)
+    untiled = mean_square_distance(scan, scan[cover_order(scan, target)])
+    shares, radii = points // 10, 0.01 * 2.0 ** (np.arange(160) / 16)
+    covers = np.array([cover_counts(xyz, share, radii, finest=radii[0]) for xyz, share in zip(tiles, shares)])
+    picks = np.rint(one_radius_counts(least_covers(covers, shares, points), target)).astype(int)
+
+    def pooled(counts: np.ndarray) -> float:
+        return sum(size * mean_square_distance(xyz, xyz[cover_order(xyz, count)])
+                   for size, xyz, count in zip(points, tiles, counts)) / points.sum()
+    assert picks.sum() == pytest.approx(target, rel=0.02) and picks[1] > 5 * shares[1]
+    assert pooled(shares) > 3 * untiled and pooled(picks) == pytest.approx(untiled, rel=0.06)

@@ -106,19 +106,19 @@ def test_a_budget_at_the_cover_count_still_covers_the_tile():
 
 
 def test_a_tiles_own_count_starts_from_what_its_surveys_gap_asks_for():
-    """A tile whose survey's picks fell short at the run's radius counts again from as many picks as the gap
-    they left asks for (the finest grid radius they covered at), not from its share again; with no grid
-    radius covered, the gap is unknown and its share is sampled first."""
-    from pipeline.engine.phases import first_sample
+    """A tile whose survey's picks (1.5x its share) fell short at the run's radius counts again from as many
+    picks as the gap they left asks for (the finest grid radius they covered at), not from them again; with no
+    grid radius covered, the gap is unknown and the survey's picks are sampled first."""
+    from pipeline.engine.covers import first_sample
     from pipeline.engine.tasks import TileSurvey
 
     radii = radius_grid(np.array([1.0, 2.0, 4.0]))
     covers = np.where(radii >= 2.0, 50, -1)
-    survey = TileSurvey(np.zeros(3), 10_000, 0.0, 0.0, np.empty(0), 100, np.zeros(3), covers, np.empty(0), 0.0)
-    assert first_sample(survey, radii, 1.0) == int(np.ceil(1.25 * 100 * 4))  # gap 2: 4x the picks, and a quarter
+    survey = TileSurvey(np.zeros(3), 10_000, 0.0, 0.0, np.empty(0), 100, np.zeros(3), covers, np.empty(0))
+    assert first_sample(survey, radii, 1.0) == int(np.ceil(1.25 * 150 * 4))  # gap 2: 4x the picks, and a quarter
     unknown = TileSurvey(np.zeros(3), 10_000, 0.0, 0.0, np.empty(0), 100, np.zeros(3), np.full(len(radii), -1),
-                         np.empty(0), 0.0)
-    assert first_sample(unknown, radii, 1.0) == 100
+                         np.empty(0))
+    assert first_sample(unknown, radii, 1.0) == 150
     xyz = plane_with_strays(5)
     radius = np.array([0.7])
     assert cover_counts(xyz, 1_500, radius, finest=0.7)[0] == cover_counts(xyz, 50, radius, finest=0.7)[0]

@@ -180,11 +180,11 @@ def count_at(counts: np.ndarray, radii: np.ndarray, radius: float) -> np.ndarray
     return np.asarray(counts)[:, at].astype(np.int64)
 
 
-def least_covers(covers: np.ndarray, shares: np.ndarray, counts: np.ndarray) -> np.ndarray:
+def least_covers(covers: np.ndarray, sampled: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """(tiles, g) each tile's cover count at each radius of its survey's grid (radius_grid) from its (tiles, g)
-    surveyed `covers`, one more than its (tiles,) share of the count where they fell short (-1: the least it
-    can be; the run counts those tiles' own), at most its (tiles,) points `counts`."""
-    return np.minimum(np.where(covers < 0, np.asarray(shares)[:, None] + 1, covers), np.asarray(counts)[:, None])
+    surveyed `covers`, one more than the (tiles,) picks its survey `sampled` where they fell short (-1: the least
+    it can be; the run counts those tiles' own), at most its (tiles,) points `counts`."""
+    return np.minimum(np.where(covers < 0, np.asarray(sampled)[:, None] + 1, covers), np.asarray(counts)[:, None])
 
 
 def feasible_radius(least: np.ndarray, radii: np.ndarray, target: int) -> float:
@@ -192,6 +192,29 @@ def feasible_radius(least: np.ndarray, radii: np.ndarray, target: int) -> float:
     hole cover cannot be completed (inf where none fits)."""
     fitting = np.flatnonzero(least.sum(axis=0) <= target)
     return float(radii[fitting[0]]) if len(fitting) else float("inf")
+
+
+def last_over(least: np.ndarray, target: int) -> int:
+    """The last column of the (tiles, g) `least` covers (ascending radii) whose counts add up to more than
+    `target`, -1 where none does: one farthest point sampling of the whole scan to `target` picks covers at a
+    radius past it (the least covers are at most the true counts), so a tile's count is needed there and beyond."""
+    over = np.flatnonzero(least.sum(axis=0) > target)
+    return int(over[-1]) if len(over) else -1
+
+
+def one_radius_counts(least: np.ndarray, target: int) -> np.ndarray:
+    """(tiles,) the picks each tile's farthest point sampling needs to cover its core at r*, the one radius at
+    which the tiles' counts add up to `target`: log-log interpolated between the two columns of the (tiles, g)
+    `least` covers that bracket it (last_over and the next; the first or last column where r* is off the grid),
+    which must be exact counts there. Why: one sampling of the whole scan covers everywhere at about one radius,
+    where the tiles' samplings at their shares of the count cover dense tiles finer than sparse ones."""
+    totals = least.sum(axis=0).astype(np.float64)
+    below = last_over(least, target)
+    if below < 0 or below == least.shape[1] - 1:
+        return least[:, max(below, 0)].astype(np.float64)
+    step = np.log(totals[below] / max(target, 1)) / np.log(totals[below] / max(totals[below + 1], 1.0))
+    fine, coarse = (np.maximum(least[:, column], 1).astype(np.float64) for column in (below, below + 1))
+    return np.where(least[:, below] > 0, fine * (coarse / fine) ** step, 0.0)
 
 
 DISC_EDGE = float(np.sqrt(np.pi))  # a hole's cover point serves the points within the cover radius r of it: on a

@@ -12,7 +12,6 @@ from typing import TYPE_CHECKING, Any, Callable
 import numpy as np
 
 from model.chamfer_bound import bounded_radius, estimated_chamfer
-from model.cover import grown_sample
 from model.methods import Fill
 from model.rules import kept_count
 from model.selection import VoxelCounts
@@ -20,8 +19,9 @@ from model.stratified import at_cover_floor
 from pipeline.config import RunConfig, parse_size
 from pipeline.engine.classes import ClassRule
 from pipeline.engine.execute import map_tasks
-from pipeline.engine.tasks import (CoverJob, SurveyJob, TileJob, TileSurvey, bucket_piece, count_cover, load_survey,
-                                   sort_crowded, survey_tile)
+from pipeline.engine.covers import cover_floors, fps_reference, surveyed_least
+from pipeline.engine.tasks import (CoverJob, SurveyJob, TileJob, TileSurvey, bucket_piece, load_survey, sort_crowded,
+                                   survey_tile)
 from pipeline.engine.workdir import BucketedPiece, WorkDir
 from pipeline.errors import PipelineError
 from pipeline.io.crs import crs_wkt
@@ -32,7 +32,7 @@ from pipeline.progress import Progress, counted
 from tiling.assemble import level_parts, seam_rejections
 from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
 from tiling.budgets import (count_at, coverage_weights, even_spacing, feasible_radius, grouped_budgets, hole_voxels,
-                            least_covers, nested_budgets, pooled_quantile, radius_grid, saliency_weights)
+                            nested_budgets, pooled_quantile, radius_grid, saliency_weights)
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice
 
@@ -168,45 +168,45 @@ class ScanFill:
 
 
 def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray, target: int, method: Fill,
-              planned: Callable[[float, np.ndarray], np.ndarray], lowest: float) -> tuple[np.ndarray, ScanFill]:
+              planned: Callable[[float, np.ndarray], np.ndarray], lowest: float,
+              reference: float) -> tuple[np.ndarray, ScanFill]:
     """Tile weights for the budgets and the fill settings that make tiles keep points as one stratified
     pass over the whole scan would: weights 1 + strength x loss / the scan's mean loss (the method's
     loss_strength), and a hole radius of its `cover_spacings` times the scan's typical pick spacing, but not
     finer than the even spacing `target` points can cover (the default's floor before 0.3.11), then narrowed
-    where its `chamfer_bound` asks (model.chamfer_bound) for the (tiles,) budgets `planned(radius, weights)`
-    gives at the default's weights (strength 1: the radius is the default's at any strength), down to
-    `lowest` at most (tiling.budgets.feasible_radius: below it the floors would exceed the target and tiles
-    would cut their hole cover short)."""
+    where its `chamfer_bound` asks (model.chamfer_bound) against the `reference` Chamfer distance (one FPS of
+    the whole scan's, as pipeline.engine.covers.fps_reference measures it) for the (tiles,) budgets
+    `planned(radius, weights)` gives at the default's weights (strength 1: the radius is the default's at any
+    strength), down to `lowest` at most (tiling.budgets.feasible_radius: below it the floors would exceed the
+    target and tiles would cut their hole cover short)."""
     counts, levels = np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys])
     loss_sums = np.array([s.loss_sum for s in surveys])
     weights, scales = saliency_weights(counts, levels, loss_sums, method.loss_strength())
     spacing = pooled_quantile([s.spacings for s in surveys], np.array([s.picks for s in surveys]))
     widest = max(method.cover_spacings * spacing, even_spacing(occupied, sizes, target))
     default_weights = saliency_weights(counts, levels, loss_sums)[0]
-    radius = chamfer_radius(surveys, lambda r: planned(r, default_weights), method.chamfer_bound, widest,
+    radius = chamfer_radius(surveys, lambda r: planned(r, default_weights), method.chamfer_bound * reference, widest,
                             min(lowest, widest))
     return weights, ScanFill(scales, radius, widest)
 
 
-def chamfer_radius(surveys: list[TileSurvey], budgets_at: Callable[[float], np.ndarray], bound: float, widest: float,
+def chamfer_radius(surveys: list[TileSurvey], budgets_at: Callable[[float], np.ndarray], limit: float, widest: float,
                    lowest: float) -> float:
     """The widest hole radius in [lowest, widest] at which the scan's Chamfer distance, estimated from the
-    tiles' surveys (model.chamfer_bound), is at most `bound` x that of as many farthest point picks:
-    each tile's trial fill stretched from its share of the count to the budget `budgets_at(radius)` ((tiles,))
-    gives it there."""
+    tiles' surveys (model.chamfer_bound), is at most `limit`: each tile's trial fill stretched from its share
+    of the count to the budget `budgets_at(radius)` ((tiles,)) gives it there."""
     measured = np.array([len(survey.gaps) > 0 for survey in surveys])
     if not measured.any():
         return widest
     gaps = np.array([survey.gaps for survey in surveys if len(survey.gaps)])
     counts = np.array([survey.core_count for survey in surveys], dtype=np.float64)[measured]
     shares = np.array([survey.picks for survey in surveys], dtype=np.float64)[measured]
-    even = np.array([survey.even_chamfer for survey in surveys])[measured]
 
     def estimate(radius: float) -> float:
         stretch = np.sqrt(shares / np.maximum(budgets_at(radius), 1e-9)[measured])
         return estimated_chamfer(gaps, stretch, counts, radius)
 
-    return bounded_radius(estimate, bound * float((even * counts).sum() / counts.sum()), widest, lowest)
+    return bounded_radius(estimate, limit, widest, lowest)
 
 
 def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, counts: np.ndarray,
@@ -227,13 +227,15 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, 
             # saliency shared as one pass would: one fill rate for every tile, plus a point for each hole its
             # trial fill left, and at least the picks that cover it at the hole radius, so a sparse tile can
             # cover all its holes
-            least = least_covers(np.array([s.covers for s in surveys]), np.array([s.picks for s in surveys]),
-                                 counts)
+            counting = (client, plan, slices.core)
+            tasks = (work, config, progress, chunk_cache_bytes(config), core_points(plan))
+            surveys, reference = fps_reference(*counting, surveys, sizes, target, *tasks)
+            least = surveyed_least(surveys)
             planned = planned_budgets(surveys, sizes, counts, config.ratio, plan.budget_groups(), least)
             weights, fill = scan_fill(surveys, occupied, sizes, target, simplifier, planned,
-                                      feasible_radius(least, radius_grid(sizes), target))
+                                      feasible_radius(least, radius_grid(sizes), target), reference)
             holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes, fill.cover_radius)
-            floors = cover_floors(client, plan, slices.core, surveys, sizes, fill.cover_radius, work, config, progress)
+            floors = cover_floors(*counting, surveys, sizes, fill.cover_radius, *tasks)
             fill = replace(fill, cover_counts=floors)
         else:  # spaced evenly: tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
@@ -255,33 +257,6 @@ def planned_budgets(surveys: list[TileSurvey], sizes: np.ndarray, counts: np.nda
         return grouped_budgets(counts, ratio, groups, floors=count_at(least, radii, radius), weights=weights,
                                extra=hole_voxels(occupied, filled, sizes, radius))
     return planned
-
-
-def cover_floors(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], surveys: list[TileSurvey],
-                 sizes: np.ndarray, radius: float, work: WorkDir, config: RunConfig, progress: Progress) -> np.ndarray:
-    """(tiles,) the fewest picks that leave no core point of each tile farther than `radius` from one: its
-    survey's count (at the grid radius just below), or, where the survey's picks fell short (a tile sparse
-    for this radius), a count of the tile's own at the radius (a task that loads its core). That task starts
-    from as many picks as the gap the survey's left asks for (the finest grid radius it counted), not from
-    the survey's own count again, which is known to fall short."""
-    covers, radii = np.array([survey.covers for survey in surveys]), radius_grid(sizes)
-    floors = count_at(covers, radii, radius)
-    short = np.flatnonzero(floors < 0)
-    if len(short):
-        cache_bytes, rule = chunk_cache_bytes(config), ClassRule.of(config)
-        jobs = [CoverJob(str(work.store_path), int(tile_id), tuple(slices[tile_id]), cache_bytes,
-                         first_sample(surveys[tile_id], radii, radius), radius, config.seed, rule) for tile_id in short]
-        floors[short] = map_tasks(client, count_cover, jobs, plan, desc="count covers", progress=progress,
-                                  cost=core_points(plan))
-    return floors
-
-
-def first_sample(survey: TileSurvey, radii: np.ndarray, radius: float) -> int:
-    """The picks a tile's own cover count starts from: as many as the finest grid radius its survey's picks
-    covered at asks for to reach `radius` (model.cover.grown_sample), or the survey's picks again where they
-    covered at none (their gap is then unknown)."""
-    counted = radii[survey.covers >= 0]
-    return grown_sample(survey.picks, float(counted.min()), radius, survey.core_count) if len(counted) else survey.picks
 
 
 def make_jobs(work: WorkDir, plan: TilePlan, slices: TileSlices, budgets: np.ndarray, whole: np.ndarray,

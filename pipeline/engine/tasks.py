@@ -14,8 +14,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from model.chamfer_bound import sampled_measures
-from model.cover import cover_counts, cover_order
+from model.chamfer_bound import fill_gaps, mean_square_distance, sample_rows
+from model.cover import counts_within, cover_counts, cover_order, sampled_cover
 from model.methods import Fill, Method
 from model.rules import column_mean, column_min, grid_xyz, kept_count, take_records
 from model.selection import FillContext, FillLoss, Selection, Tile, VoxelCounts
@@ -26,6 +26,11 @@ from tiling.bucket import SubCellIndex, bucket_by_cell, bucket_by_sub_cell
 from tiling.budgets import occupied_voxels, radius_grid
 from tiling.plan import DensityGrid, TilePlan
 from tiling.store import Slice, StoredPoints, TileStore
+
+SURVEY_PICKS = 1.5  # a survey's farthest point picks over its tile's share of the count: on a surface they cover
+# at 0.82x its share's radius. Half a scan's tiles need more than their share at the one radius of the run's
+# reference; bcts at 0.1 left 90 / 48 / 5 of 91 tiles to count again with 1 / 1.25 / 1.5 (the run 30 % slower with
+# 1), and 1.5 did not move a survey's time past this machine's noise (18 bcts_1 tiles, one thread)
 
 if TYPE_CHECKING:  # a tile process never reads the scan: laspy and pyproj (about 0.1 s) stay out of its server's import
     from pipeline.io.scan import Piece, Scan
@@ -187,10 +192,10 @@ class TileSurvey:
     """What a tile tells the run: occupied voxels (levels,), its core count, mean absolute fill loss,
     the relative loss summed over the core, (quantiles,) spacings of a trial fill's picks, of `picks`, the
     voxels (levels,) those picks occupy, on the core's grids (zeros for a method with no fill), the
-    picks that cover the core at each radius of tiling.budgets.radius_grid(sizes) (-1: more than `picks`;
-    empty for a method with no fill), (quantiles,) distances from a sample of core points to the trial
-    fill's nearest pick and the sample's mean squared distance to as many farthest point picks
-    (model.chamfer_bound; empty and 0 without a fill)."""
+    picks that cover the core at each radius of tiling.budgets.radius_grid(sizes) (-1: more than surveyed_picks;
+    empty for a method with no fill) and (quantiles,) distances from a sample of core points to the trial
+    fill's nearest pick (model.chamfer_bound; empty without a fill). The sample and the farthest point picks
+    stay in the survey's file, for the run's reference (pipeline.engine.reference)."""
 
     occupied: np.ndarray
     core_count: int
@@ -201,24 +206,27 @@ class TileSurvey:
     filled: np.ndarray
     covers: np.ndarray
     gaps: np.ndarray
-    even_chamfer: float
 
 
 @dataclass(frozen=True)
 class FillSurvey:
-    """A stratified method's measures of one tile's trial fill (TileSurvey's fields of the same names)."""
+    """A stratified method's measures of one tile's trial fill (TileSurvey's fields of the same names), and
+    what its survey's file keeps for the run's reference: the farthest point picks of the core, (picks, 3) in
+    their order, and the core's sample, (s, 3) (model.chamfer_bound.sample_rows)."""
 
     loss: FillLoss
     spacings: np.ndarray
     filled: np.ndarray
     covers: np.ndarray
     gaps: np.ndarray
-    even_chamfer: float
+    even_xyz: np.ndarray
+    sample_xyz: np.ndarray
 
     @classmethod
     def empty(cls, levels: int, covers: np.ndarray) -> "FillSurvey":
         """Nothing measured: a method with no fill (`covers` empty) or a tile whose share of the count is 0."""
-        return cls(FillLoss(None, 0.0), np.empty(0), np.zeros(levels, dtype=np.int64), covers, np.empty(0), 0.0)
+        return cls(FillLoss(None, 0.0), np.empty(0), np.zeros(levels, dtype=np.int64), covers, np.empty(0),
+                   np.empty((0, 3)), np.empty((0, 3)))
 
 
 def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
@@ -233,60 +241,92 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     core_loss = None if fill.loss.relative is None else fill.loss.relative[tile.core]
     loss_sum = float(core_loss.sum()) if core_loss is not None else 0.0
     survey = TileSurvey(occupied, tile.core_count, fill.loss.level, loss_sum, fill.spacings, budget, fill.filled,
-                        fill.covers, fill.gaps, fill.even_chamfer)
+                        fill.covers, fill.gaps)
     arrays = {} if core_loss is None else {"relative": core_loss.astype(np.float32)}
     write_atomically(Path(job.survey_path), lambda tmp: save_npz(
         tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
         spacings=fill.spacings, picks=budget, filled=fill.filled, covers=fill.covers, gaps=fill.gaps,
-        even_chamfer=fill.even_chamfer, **arrays))
+        even_xyz=fill.even_xyz, sample_xyz=fill.sample_xyz, **arrays))
     return survey
 
 
 def survey_fill(tile: Tile, core_xyz: np.ndarray, budget: int, sizes: np.ndarray, simplifier: Fill) -> FillSurvey:
     """A stratified method's trial fill of `budget` core points and what the run needs from it: its loss,
-    spacings and voxels, the farthest point picks' cover counts, and both samplings' distances from a
-    sample of the core (core_xyz: (c, 3))."""
+    spacings and voxels, surveyed_picks farthest point picks and their cover counts, a sample of the core
+    (core_xyz: (c, 3)) and the fill's distances from it."""
     if budget == 0:
         return FillSurvey.empty(len(sizes), cover_counts(core_xyz, 0, radius_grid(sizes)))
-    even = cover_order(core_xyz, budget)
-    covers = cover_counts(core_xyz, budget, radius_grid(sizes), picks=even)
+    sampled = surveyed_picks(budget, len(core_xyz))
+    even = cover_order(core_xyz, sampled)
+    covers = cover_counts(core_xyz, sampled, radius_grid(sizes), picks=even)
     loss = simplifier.fill_loss(tile, budget)
     picks = tile.xyz[trial_fill(tile, budget, loss)]
-    gaps, even_chamfer, _ = sampled_measures(core_xyz, picks, core_xyz[even])
+    sample = core_xyz[sample_rows(len(core_xyz))]
     return FillSurvey(loss, pick_spacings(picks), occupied_voxels(picks, sizes, origin=column_min(core_xyz)), covers,
-                      gaps, even_chamfer)
+                      fill_gaps(sample, picks), core_xyz[even], sample)
+
+
+def surveyed_picks(share: int, points: int) -> int:
+    """How many farthest point picks a survey samples of a tile's `points` core points, given its `share` of the
+    count: SURVEY_PICKS x the share, so that most tiles' picks reach the run's reference radius
+    (pipeline.engine.covers.fps_reference), about the radius of their share's picks, without a count of their own."""
+    return min(points, int(np.ceil(SURVEY_PICKS * share)))
 
 
 @dataclass(frozen=True)
 class CoverJob:
-    """A tile whose survey's picks (its share of the count) fell short of covering its core at the run's
-    hole radius: how many it needs there."""
+    """A tile whose survey's picks (its share of the count) fell short of covering its core at a radius the
+    run needs (`finest`): how many it needs at each of `radii`, and where its picks and sample are kept for
+    the run's reference (None: not kept)."""
 
     store_path: str
     tile_id: int
     slices: tuple[Slice, ...]
     cache_bytes: int
     sample: int  # picks sampled first (phases.first_sample), more as the gap they leave asks
-    radius: float
+    radii: tuple[float, ...]
+    finest: float
     seed: int
     rule: ClassRule = ClassRule()
+    keep_path: str | None = None
 
 
-def count_cover(job: CoverJob, plan: TilePlan) -> int:
-    """The farthest-point picks that bring every core point of the tile within the radius, from the point the
-    survey and the tile's own farthest point sampling start at (its core is loaded alone: the same points,
-    in the same order)."""
+def count_cover(job: CoverJob, plan: TilePlan) -> np.ndarray:
+    """(radii,) the farthest-point picks that bring every core point of the tile within each radius (-1 below
+    `finest`, where they may not), from the point the survey and the tile's own farthest point sampling start
+    at (its core is loaded alone: the same points, in the same order, as its survey's sample)."""
     tile, _, _ = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, 0.0, job.seed, job.rule)
     core_xyz = tile.xyz if tile.core.all() else tile.xyz[tile.core]
-    return int(cover_counts(core_xyz, job.sample, np.array([job.radius]), finest=job.radius)[0])
+    if len(core_xyz) == 0:
+        return np.zeros(len(job.radii), dtype=np.int64)
+    picks, shrinking = sampled_cover(core_xyz, job.sample, job.finest)
+    if job.keep_path is not None:
+        write_atomically(Path(job.keep_path), lambda tmp: save_npz(
+            tmp, even_xyz=core_xyz[picks], sample_xyz=core_xyz[sample_rows(len(core_xyz))]))
+    return counts_within(shrinking, np.array(job.radii), complete=len(picks) == len(core_xyz))
+
+
+@dataclass(frozen=True)
+class ReferenceJob:
+    """One tile's part of the run's reference: the file holding its farthest point picks and sample (its
+    survey's, or its cover count's) and how many of the picks stand for it."""
+
+    path: str
+    picks: int
+
+
+def reference_square(job: ReferenceJob) -> float:
+    """The mean squared distance from the tile's sample to the first `picks` of its farthest point picks."""
+    with np.load(job.path) as saved:
+        even_xyz, sample_xyz = saved["even_xyz"], saved["sample_xyz"]
+    return mean_square_distance(sample_xyz, even_xyz[:max(1, min(job.picks, len(even_xyz)))])
 
 
 def load_survey(path: Path) -> TileSurvey:
     """A finished survey's summary (the per-point loss stays on disk)."""
     with np.load(path) as saved:
         return TileSurvey(saved["occupied"], int(saved["core_count"]), float(saved["level"]), float(saved["loss_sum"]),
-                          saved["spacings"], int(saved["picks"]), saved["filled"], saved["covers"], saved["gaps"],
-                          float(saved["even_chamfer"]))
+                          saved["spacings"], int(saved["picks"]), saved["filled"], saved["covers"], saved["gaps"])
 
 
 def load_fill_loss(path: Path, core: np.ndarray) -> FillLoss:

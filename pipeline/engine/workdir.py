@@ -92,6 +92,10 @@ class WorkDir:
         """Where a tile's survey (coverage, and a stratified method's fill loss) is kept."""
         return self.path / f"survey-{tile_id}.npz"
 
+    def cover_path(self, tile_id: int) -> Path:
+        """Where a tile counted past its survey's share keeps its farthest point picks and sample."""
+        return self.path / f"cover-{tile_id}.npz"
+
     def tile_path(self, tile_id: int) -> Path:
         """Where a simplified tile's picks are kept."""
         return self.path / f"tile-{tile_id}.npz"

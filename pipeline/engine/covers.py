@@ -1,0 +1,110 @@
+"""Tiles' cover counts past their survey's share of the count, where a run needs them: the hole cover's floors
+at the run's radius, and the reference its Chamfer bound is held against, one farthest point sampling (FPS) of
+the whole scan as the tiles stand for it.
+
+Why the reference: the survey samples each tile's FPS at the tile's share of the count, and those samplings,
+pooled, stood for one FPS of the whole scan only where density is even. Their mean squared distance came out
+1.00-1.05x an untiled FPS's on the shared scans and 1.14-1.25x on a mobile street, whose sparse far tiles get
+few picks for their area: a Chamfer bound of 1.3x them let a run reach 1.35x an untiled FPS (autzen at 0.2).
+One FPS of the whole scan covers everywhere at about one radius: each tile's FPS run to the radius r* at which
+the tiles' counts add up to the target gave the mean squared distance within -3.3 to +3.1 % of an untiled
+FPS's on 27 scan-ratio pairs (bench/fps_reference.py). Rescaling each tile's distances at its share to its
+count at r* instead was not enough (1.04x on autzen at 0.2, 1.07x on the street): they are measured.
+"""
+from __future__ import annotations
+
+from concurrent.futures import Executor
+from dataclasses import replace
+from typing import TYPE_CHECKING, Callable
+
+import numpy as np
+
+from model.cover import grown_sample
+from pipeline.config import RunConfig
+from pipeline.engine.classes import ClassRule
+from pipeline.engine.execute import map_tasks
+from pipeline.engine.tasks import (CoverJob, ReferenceJob, TileSurvey, count_cover, reference_square,
+                                   surveyed_picks)
+from pipeline.engine.workdir import WorkDir
+from pipeline.progress import Progress
+from tiling.budgets import count_at, last_over, least_covers, one_radius_counts, radius_grid
+from tiling.plan import TilePlan
+from tiling.store import Slice
+
+if TYPE_CHECKING:
+    from dask.distributed import Client
+
+
+def cover_floors(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], surveys: list[TileSurvey],
+                 sizes: np.ndarray, radius: float, work: WorkDir, config: RunConfig, progress: Progress,
+                 cache_bytes: int, cost: Callable[[CoverJob], int]) -> np.ndarray:
+    """(tiles,) the fewest picks that leave no core point of each tile farther than `radius` from one: its
+    survey's count (at the grid radius just below), or, where the survey's picks fell short (a tile sparse
+    for this radius), a count of the tile's own at the radius (a task that loads its core)."""
+    radii = radius_grid(sizes)
+    floors = count_at(np.array([survey.covers for survey in surveys]), radii, radius)
+    short = np.flatnonzero(floors < 0)
+    if len(short):
+        jobs = [cover_job(plan, slices, surveys, radii, int(tile_id), (radius,), radius, work, config, cache_bytes)
+                for tile_id in short]
+        counted = map_tasks(client, count_cover, jobs, plan, desc="count covers", progress=progress, cost=cost)
+        floors[short] = [int(counts[0]) for counts in counted]
+    return floors
+
+
+def fps_reference(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], surveys: list[TileSurvey],
+                  sizes: np.ndarray, target: int, work: WorkDir, config: RunConfig, progress: Progress,
+                  cache_bytes: int, cost: Callable[[CoverJob], int]) -> tuple[list[TileSurvey], float]:
+    """The surveys with the cover counts of tiles short at r* counted past their share (exact from the grid
+    radius below r* up), and the mean squared distance from the tiles' samples to their FPS picks at r*,
+    pooled by core points over the tiles with a trial fill (those the Chamfer estimate covers)."""
+    radii = radius_grid(sizes)
+    counts = np.array([survey.core_count for survey in surveys])
+    measured = np.array([len(survey.gaps) > 0 for survey in surveys])
+    if not measured.any():
+        return surveys, 0.0
+    least = surveyed_least(surveys)
+    below = last_over(least, target)  # r* lies past this grid radius (-1: below the grid, kept nearly whole)
+    short = (np.flatnonzero(measured & (np.array([survey.covers[below] for survey in surveys]) < 0)) if below >= 0
+             else np.empty(0, dtype=np.int64))
+    if len(short):
+        jobs = [cover_job(plan, slices, surveys, radii, int(tile_id), tuple(radii), float(radii[below]), work, config,
+                          cache_bytes, keep=True) for tile_id in short]
+        counted = map_tasks(client, count_cover, jobs, plan, desc="count covers", progress=progress, cost=cost)
+        surveys = list(surveys)
+        for tile_id, covers in zip(short, counted):
+            surveys[tile_id] = replace(surveys[tile_id], covers=covers)
+        least = surveyed_least(surveys)
+    picks = np.maximum(np.rint(one_radius_counts(least, target)), 1).astype(np.int64)
+    kept = set(short.tolist())
+    tiles = np.flatnonzero(measured)
+    jobs = [ReferenceJob(str(work.cover_path(tile_id) if tile_id in kept else work.survey_path(tile_id)),
+                         int(picks[tile_id])) for tile_id in tiles]
+    squares = np.array(map_tasks(client, reference_square, jobs, desc="measure reference", progress=progress))
+    return surveys, float((squares * counts[tiles]).sum() / counts[tiles].sum())
+
+
+def surveyed_least(surveys: list[TileSurvey]) -> np.ndarray:
+    """(tiles, g) the least each tile's cover count can be at each radius of the survey's grid
+    (tiling.budgets.least_covers: what its survey's picks counted, one more than them where they fell short)."""
+    counts = [survey.core_count for survey in surveys]
+    sampled = [surveyed_picks(survey.picks, count) for survey, count in zip(surveys, counts)]
+    return least_covers(np.array([survey.covers for survey in surveys]), np.array(sampled), np.array(counts))
+
+
+def cover_job(plan: TilePlan, slices: list[list[Slice]], surveys: list[TileSurvey], radii: np.ndarray, tile_id: int,
+              counted_at: tuple[float, ...], finest: float, work: WorkDir, config: RunConfig, cache_bytes: int,
+              keep: bool = False) -> CoverJob:
+    """A count of the tile's own cover at `counted_at`, sampled until it covers at `finest` (its picks and sample
+    kept in work.cover_path when `keep`)."""
+    return CoverJob(str(work.store_path), tile_id, tuple(slices[tile_id]), cache_bytes,
+                    first_sample(surveys[tile_id], radii, finest), counted_at, finest, config.seed,
+                    ClassRule.of(config), str(work.cover_path(tile_id)) if keep else None)
+
+
+def first_sample(survey: TileSurvey, radii: np.ndarray, radius: float) -> int:
+    """The picks a tile's own cover count starts from: as many as the finest grid radius its survey's picks
+    (tasks.surveyed_picks) covered at asks for to reach `radius` (model.cover.grown_sample), or the survey's
+    picks again where they covered at none (their gap is then unknown)."""
+    counted, sampled = radii[survey.covers >= 0], surveyed_picks(survey.picks, survey.core_count)
+    return grown_sample(sampled, float(counted.min()), radius, survey.core_count) if len(counted) else sampled
