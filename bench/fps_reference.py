@@ -6,10 +6,11 @@ and Chamfer against an untiled FPS).
                                   [--ratios 0.1] [--data ../shared/data/lidar] [--out bench/results]
 
 For each scan and ratio, on the tiles a default `learned` run plans (tiling.plan, as bench/seams.py plans them):
-- "at shares": each tile's FPS at its share of the count, as the run's survey samples it today;
+- "at shares": each tile's FPS at its share of the count, the Chamfer bound's reference until 0.3.12;
 - "one radius": each tile's FPS run on to one covering radius r* for the whole scan, the radius at which the tiles'
   counts add up to the target (a tile past its share where it must, up to MAX_SHARE_MULTIPLE times), as one pass
-  over the whole scan covers everywhere at about one radius.
+  over the whole scan covers everywhere at about one radius: what a run measures since 0.3.12
+  (pipeline/engine/covers.py, which counts a tile past its share as far as r* asks).
 For each, the p99 and the mean squared distance from an even sample of each tile's core (model.chamfer_bound's
 sample) to the tile's picks, pooled by core points, over the same of an untiled FPS (every point scored). Writes
 fps_reference.md under --out.

@@ -8,7 +8,7 @@ from model import Tile, get_simplifier
 from model.baselines import bucket_height, fps_order
 from model.cover import cover_counts, insertion_radii
 from model.selection import FillContext, FillLoss
-from tiling.budgets import count_at, occupied_voxels, radius_grid, voxels_at
+from tiling.budgets import count_at, count_between, occupied_voxels, radius_grid, voxels_at
 
 
 def plane_with_strays(seed: int = 0) -> np.ndarray:
@@ -85,6 +85,17 @@ def test_count_at_reads_the_grid_radius_just_below_and_unknown_below_the_grid():
     assert count_at(counts, radii, radii[3] * 1.01)[0] == counts[0, 3]
     assert count_at(counts, radii, radii[3])[0] == counts[0, 3]
     assert count_at(counts, radii, 0.99)[0] == -1
+
+
+def test_planned_floors_are_read_between_the_grid_radii_either_side():
+    """Halfway (in log radius) between radii counted 400 and 100, a surface's count is 200 (rounded up); on a
+    grid radius its own count; off the grid the end column; an empty tile 0."""
+    radii = np.array([1.0, 2.0, 4.0])
+    least = np.array([[400, 100, 25], [0, 0, 0]])
+    assert count_between(least, radii, np.sqrt(2.0)).tolist() == [200.0, 0.0]
+    assert count_between(least, radii, 2.0).tolist() == [100.0, 0.0]
+    assert count_between(least, radii, 0.5).tolist() == [400.0, 0.0]
+    assert count_between(least, radii, 9.0).tolist() == [25.0, 0.0]
 
 
 def test_a_budget_at_the_cover_count_still_covers_the_tile():

@@ -212,9 +212,27 @@ def one_radius_counts(least: np.ndarray, target: int) -> np.ndarray:
     below = last_over(least, target)
     if below < 0 or below == least.shape[1] - 1:
         return least[:, max(below, 0)].astype(np.float64)
-    step = np.log(totals[below] / max(target, 1)) / np.log(totals[below] / max(totals[below + 1], 1.0))
-    fine, coarse = (np.maximum(least[:, column], 1).astype(np.float64) for column in (below, below + 1))
-    return np.where(least[:, below] > 0, fine * (coarse / fine) ** step, 0.0)
+    return between_columns(least, below, np.log(totals[below] / max(target, 1))
+                           / np.log(totals[below] / max(totals[below + 1], 1.0)))
+
+
+def count_between(least: np.ndarray, radii: np.ndarray, radius: float) -> np.ndarray:
+    """(tiles,) each tile's cover count at `radius` from its (tiles, g) `least` covers at `radii` (g,), log-log
+    interpolated between the grid radii either side (the end column off the grid): where a run plans the
+    budgets its hole radius would give, as its floors are read exactly from each tile's kept picks
+    (pipeline.engine.covers.cover_floors; the grid radius below took up to 9 % more picks)."""
+    column = int(np.searchsorted(radii, radius, side="right")) - 1
+    if column < 0 or column >= len(radii) - 1:
+        return least[:, min(max(column, 0), len(radii) - 1)].astype(np.float64)
+    return np.ceil(between_columns(least, column, np.log(radius / radii[column])
+                                   / np.log(radii[column + 1] / radii[column])))
+
+
+def between_columns(least: np.ndarray, column: int, step: float) -> np.ndarray:
+    """(tiles,) counts `step` (0 to 1, in log radius) of the way from `least`'s column to the next, log-log
+    (a surface's count falls as a power of the radius); 0 for a tile with no points."""
+    fine, coarse = (np.maximum(least[:, at], 1).astype(np.float64) for at in (column, column + 1))
+    return np.where(least[:, column] > 0, fine * (coarse / fine) ** step, 0.0)
 
 
 DISC_EDGE = float(np.sqrt(np.pi))  # a hole's cover point serves the points within the cover radius r of it: on a

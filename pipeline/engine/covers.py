@@ -23,8 +23,8 @@ from model.cover import grown_sample
 from pipeline.config import RunConfig
 from pipeline.engine.classes import ClassRule
 from pipeline.engine.execute import map_tasks
-from pipeline.engine.tasks import (CoverJob, ReferenceJob, TileSurvey, count_cover, reference_square,
-                                   surveyed_picks)
+from pipeline.engine.tasks import (CoverJob, FloorJob, ReferenceJob, TileSurvey, count_cover, exact_floor,
+                                   reference_square, surveyed_picks)
 from pipeline.engine.workdir import WorkDir
 from pipeline.progress import Progress
 from tiling.budgets import count_at, last_over, least_covers, one_radius_counts, radius_grid
@@ -37,32 +37,38 @@ if TYPE_CHECKING:
 
 def cover_floors(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], surveys: list[TileSurvey],
                  sizes: np.ndarray, radius: float, work: WorkDir, config: RunConfig, progress: Progress,
-                 cache_bytes: int, cost: Callable[[CoverJob], int]) -> np.ndarray:
-    """(tiles,) the fewest picks that leave no core point of each tile farther than `radius` from one: its
-    survey's count (at the grid radius just below), or, where the survey's picks fell short (a tile sparse
-    for this radius), a count of the tile's own at the radius (a task that loads its core)."""
+                 cache_bytes: int, cost: Callable[[CoverJob], int], counted: frozenset[int]) -> np.ndarray:
+    """(tiles,) the fewest picks that leave no core point of each tile farther than `radius` from one: read from
+    the radii its kept picks leave covered where they cover it there (in its survey's file, or in its cover
+    count's for the `counted` tiles), or, where they fall short (a tile sparse for this radius), a count of the
+    tile's own at the radius (a task that loads its core)."""
     radii = radius_grid(sizes)
     floors = count_at(np.array([survey.covers for survey in surveys]), radii, radius)
+    kept = np.flatnonzero(floors >= 0)
+    jobs = [FloorJob(str(work.cover_path(tile_id) if tile_id in counted else work.survey_path(tile_id)), radius,
+                     surveys[tile_id].core_count) for tile_id in kept]
+    floors[kept] = map_tasks(client, exact_floor, jobs, desc="read floors", progress=progress)
     short = np.flatnonzero(floors < 0)
     if len(short):
-        jobs = [cover_job(plan, slices, surveys, radii, int(tile_id), (radius,), radius, work, config, cache_bytes)
-                for tile_id in short]
-        counted = map_tasks(client, count_cover, jobs, plan, desc="count covers", progress=progress, cost=cost)
-        floors[short] = [int(counts[0]) for counts in counted]
+        cover_jobs = [cover_job(plan, slices, surveys, radii, int(tile_id), (radius,), radius, work, config,
+                                cache_bytes) for tile_id in short]
+        counts = map_tasks(client, count_cover, cover_jobs, plan, desc="count covers", progress=progress, cost=cost)
+        floors[short] = [int(count[0]) for count in counts]
     return floors
 
 
 def fps_reference(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], surveys: list[TileSurvey],
                   sizes: np.ndarray, target: int, work: WorkDir, config: RunConfig, progress: Progress,
-                  cache_bytes: int, cost: Callable[[CoverJob], int]) -> tuple[list[TileSurvey], float]:
+                  cache_bytes: int, cost: Callable[[CoverJob], int]) -> tuple[list[TileSurvey], float, frozenset[int]]:
     """The surveys with the cover counts of tiles short at r* counted past their share (exact from the grid
-    radius below r* up), and the mean squared distance from the tiles' samples to their FPS picks at r*,
-    pooled by core points over the tiles with a trial fill (those the Chamfer estimate covers)."""
+    radius below r* up), the mean squared distance from the tiles' samples to their FPS picks at r*, pooled by
+    core points over the tiles with a trial fill (those the Chamfer estimate covers), and the tiles counted
+    (their picks kept in work.cover_path)."""
     radii = radius_grid(sizes)
     counts = np.array([survey.core_count for survey in surveys])
     measured = np.array([len(survey.gaps) > 0 for survey in surveys])
     if not measured.any():
-        return surveys, 0.0
+        return surveys, 0.0, frozenset()
     least = surveyed_least(surveys)
     below = last_over(least, target)  # r* lies past this grid radius (-1: below the grid, kept nearly whole)
     short = (np.flatnonzero(measured & (np.array([survey.covers[below] for survey in surveys]) < 0)) if below >= 0
@@ -81,7 +87,7 @@ def fps_reference(client: Client | Executor, plan: TilePlan, slices: list[list[S
     jobs = [ReferenceJob(str(work.cover_path(tile_id) if tile_id in kept else work.survey_path(tile_id)),
                          int(picks[tile_id])) for tile_id in tiles]
     squares = np.array(map_tasks(client, reference_square, jobs, desc="measure reference", progress=progress))
-    return surveys, float((squares * counts[tiles]).sum() / counts[tiles].sum())
+    return surveys, float((squares * counts[tiles]).sum() / counts[tiles].sum()), frozenset(kept)
 
 
 def surveyed_least(surveys: list[TileSurvey]) -> np.ndarray:

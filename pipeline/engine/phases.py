@@ -31,7 +31,7 @@ from pipeline.io.writers import write_output
 from pipeline.progress import Progress, counted
 from tiling.assemble import level_parts, seam_rejections
 from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
-from tiling.budgets import (count_at, coverage_weights, even_spacing, feasible_radius, grouped_budgets, hole_voxels,
+from tiling.budgets import (count_between, coverage_weights, even_spacing, feasible_radius, grouped_budgets, hole_voxels,
                             nested_budgets, pooled_quantile, radius_grid, saliency_weights)
 from tiling.plan import CELLS_PER_TILE, SUB_CELLS, DensityGrid, TilePlan, crowded_cells, plan_tiles, summed_cells
 from tiling.store import Slice
@@ -229,13 +229,13 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, 
             # cover all its holes
             counting = (client, plan, slices.core)
             tasks = (work, config, progress, chunk_cache_bytes(config), core_points(plan))
-            surveys, reference = fps_reference(*counting, surveys, sizes, target, *tasks)
+            surveys, reference, counted = fps_reference(*counting, surveys, sizes, target, *tasks)
             least = surveyed_least(surveys)
             planned = planned_budgets(surveys, sizes, counts, config.ratio, plan.budget_groups(), least)
             weights, fill = scan_fill(surveys, occupied, sizes, target, simplifier, planned,
                                       feasible_radius(least, radius_grid(sizes), target), reference)
             holes = hole_voxels(occupied, np.array([survey.filled for survey in surveys]), sizes, fill.cover_radius)
-            floors = cover_floors(*counting, surveys, sizes, fill.cover_radius, *tasks)
+            floors = cover_floors(*counting, surveys, sizes, fill.cover_radius, *tasks, counted)
             fill = replace(fill, cover_counts=floors)
         else:  # spaced evenly: tiles share out the points as one pass over the whole scan would
             weights = coverage_weights(occupied, sizes, target)
@@ -248,13 +248,15 @@ def scan_budgets(client: Client | Executor, plan: TilePlan, slices: TileSlices, 
 def planned_budgets(surveys: list[TileSurvey], sizes: np.ndarray, counts: np.ndarray, ratio: float,
                     groups: np.ndarray, least: np.ndarray) -> Callable[[float, np.ndarray], np.ndarray]:
     """(radius, (tiles,) weights) -> the (tiles,) budgets a stratified method's tiles would get at that hole
-    radius, as scan_budgets shares them but with floors read from `least` (tiling.budgets.least_covers, at the
-    survey's grid radius just below it): what the Chamfer bound is estimated on."""
+    radius, as scan_budgets shares them but with floors read from `least` (tiling.budgets.least_covers,
+    interpolated between the survey's grid radii: tiling.budgets.count_between): what the Chamfer bound is
+    estimated on."""
     occupied, filled = np.array([s.occupied for s in surveys]), np.array([s.filled for s in surveys])
     radii = radius_grid(sizes)
 
     def planned(radius: float, weights: np.ndarray) -> np.ndarray:
-        return grouped_budgets(counts, ratio, groups, floors=count_at(least, radii, radius), weights=weights,
+        floors = count_between(least, radii, radius).astype(np.int64)
+        return grouped_budgets(counts, ratio, groups, floors=floors, weights=weights,
                                extra=hole_voxels(occupied, filled, sizes, radius))
     return planned
 

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from model.chamfer_bound import fill_gaps, mean_square_distance, sample_rows
-from model.cover import counts_within, cover_counts, cover_order, sampled_cover
+from model.cover import counts_within, cover_counts, sampled_cover
 from model.methods import Fill, Method
 from model.rules import column_mean, column_min, grid_xyz, kept_count, take_records
 from model.selection import FillContext, FillLoss, Selection, Tile, VoxelCounts
@@ -211,8 +211,9 @@ class TileSurvey:
 @dataclass(frozen=True)
 class FillSurvey:
     """A stratified method's measures of one tile's trial fill (TileSurvey's fields of the same names), and
-    what its survey's file keeps for the run's reference: the farthest point picks of the core, (picks, 3) in
-    their order, and the core's sample, (s, 3) (model.chamfer_bound.sample_rows)."""
+    what its survey's file keeps for the run's reference and floors: the farthest point picks of the core,
+    (picks, 3) in their order, the radius they leave covered after each, (picks,), and the core's sample,
+    (s, 3) (model.chamfer_bound.sample_rows)."""
 
     loss: FillLoss
     spacings: np.ndarray
@@ -220,13 +221,14 @@ class FillSurvey:
     covers: np.ndarray
     gaps: np.ndarray
     even_xyz: np.ndarray
+    even_radii: np.ndarray
     sample_xyz: np.ndarray
 
     @classmethod
     def empty(cls, levels: int, covers: np.ndarray) -> "FillSurvey":
         """Nothing measured: a method with no fill (`covers` empty) or a tile whose share of the count is 0."""
         return cls(FillLoss(None, 0.0), np.empty(0), np.zeros(levels, dtype=np.int64), covers, np.empty(0),
-                   np.empty((0, 3)), np.empty((0, 3)))
+                   np.empty((0, 3)), np.empty(0), np.empty((0, 3)))
 
 
 def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
@@ -246,7 +248,7 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     write_atomically(Path(job.survey_path), lambda tmp: save_npz(
         tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
         spacings=fill.spacings, picks=budget, filled=fill.filled, covers=fill.covers, gaps=fill.gaps,
-        even_xyz=fill.even_xyz, sample_xyz=fill.sample_xyz, **arrays))
+        even_xyz=fill.even_xyz, even_radii=fill.even_radii, sample_xyz=fill.sample_xyz, **arrays))
     return survey
 
 
@@ -256,14 +258,13 @@ def survey_fill(tile: Tile, core_xyz: np.ndarray, budget: int, sizes: np.ndarray
     (core_xyz: (c, 3)) and the fill's distances from it."""
     if budget == 0:
         return FillSurvey.empty(len(sizes), cover_counts(core_xyz, 0, radius_grid(sizes)))
-    sampled = surveyed_picks(budget, len(core_xyz))
-    even = cover_order(core_xyz, sampled)
-    covers = cover_counts(core_xyz, sampled, radius_grid(sizes), picks=even)
+    even, shrinking = sampled_cover(core_xyz, surveyed_picks(budget, len(core_xyz)))
+    covers = counts_within(shrinking, radius_grid(sizes), complete=len(even) == len(core_xyz))
     loss = simplifier.fill_loss(tile, budget)
     picks = tile.xyz[trial_fill(tile, budget, loss)]
     sample = core_xyz[sample_rows(len(core_xyz))]
     return FillSurvey(loss, pick_spacings(picks), occupied_voxels(picks, sizes, origin=column_min(core_xyz)), covers,
-                      fill_gaps(sample, picks), core_xyz[even], sample)
+                      fill_gaps(sample, picks), core_xyz[even], shrinking, sample)
 
 
 def surveyed_picks(share: int, points: int) -> int:
@@ -302,7 +303,7 @@ def count_cover(job: CoverJob, plan: TilePlan) -> np.ndarray:
     picks, shrinking = sampled_cover(core_xyz, job.sample, job.finest)
     if job.keep_path is not None:
         write_atomically(Path(job.keep_path), lambda tmp: save_npz(
-            tmp, even_xyz=core_xyz[picks], sample_xyz=core_xyz[sample_rows(len(core_xyz))]))
+            tmp, even_xyz=core_xyz[picks], even_radii=shrinking, sample_xyz=core_xyz[sample_rows(len(core_xyz))]))
     return counts_within(shrinking, np.array(job.radii), complete=len(picks) == len(core_xyz))
 
 
@@ -313,6 +314,25 @@ class ReferenceJob:
 
     path: str
     picks: int
+
+
+@dataclass(frozen=True)
+class FloorJob:
+    """A tile whose kept farthest point picks (in its survey's file, or its cover count's) cover its core at the
+    run's hole radius: the file, the radius and the core's points."""
+
+    path: str
+    radius: float
+    points: int
+
+
+def exact_floor(job: FloorJob) -> int:
+    """The fewest of the tile's farthest point picks that leave no core point farther than the radius, read
+    from the radius each pick leaves covered (exact: the survey's grid counts read at the grid radius below
+    took up to 9 % more)."""
+    with np.load(job.path) as saved:
+        shrinking = saved["even_radii"]
+    return int(counts_within(shrinking, np.array([job.radius]), complete=len(shrinking) == job.points)[0])
 
 
 def reference_square(job: ReferenceJob) -> float:
