@@ -48,30 +48,26 @@ def insertion_radii(points: np.ndarray, picks: np.ndarray) -> np.ndarray:
     return gaps
 
 
-def cover_counts(points: np.ndarray, count: int, radii: np.ndarray, finest: float | None = None,
-                 picks: np.ndarray | None = None) -> np.ndarray:
+def cover_counts(points: np.ndarray, count: int, radii: np.ndarray, finest: float | None = None) -> np.ndarray:
     """(g,) for each of `radii` (g,) the number of cover_order picks that leave no point of
     `points` (n, 3) farther than it (a greedy cover: 1.7-2.1x fewer picks than voxels of that edge), or -1
-    where the picks sampled (sampled_cover) are too few. `picks`: cover_order(points, count), if the caller
-    has it."""
+    where the picks sampled (sampled_cover) are too few."""
     if len(points) == 0:
         return np.zeros(len(radii), dtype=np.int64)
     if count <= 0 and finest is None:
         return np.full(len(radii), -1, dtype=np.int64)
-    picks, shrinking = sampled_cover(points, count, finest, picks)
+    picks, shrinking = sampled_cover(points, count, finest)
     return counts_within(shrinking, radii, complete=len(picks) == len(points))
 
 
-def sampled_cover(points: np.ndarray, count: int, finest: float | None = None,
-                  picks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The first cover_order picks of `points` (n, 3, not empty), (m,), and the radius they leave covered after
-    each, (m,) non-increasing: `count` of them (at least one), or with `finest` more (as many again as a surface
-    would need, the sampling redone) until they cover at `finest` or every point is sampled: a tile sparse for
-    a run's hole radius needs more than its share of the count there."""
+def sampled_cover(points: np.ndarray, count: int, finest: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The first cover_order picks of `points` (n, 3, not empty), (m,), and (m,) non-increasing the radius the
+    picks before each leave covered (inf for the first): `count` of them (at least one), or with `finest` more
+    (as many again as a surface would need, the sampling redone) until they cover at `finest` or every point is
+    sampled: a tile sparse for a run's hole radius needs more than its share of the count there."""
     sampled = min(max(count, 1), len(points))
     while True:
-        if picks is None or len(picks) != sampled:
-            picks = cover_order(points, sampled)
+        picks = cover_order(points, sampled)
         shrinking = np.minimum.accumulate(insertion_radii(points, picks))  # the true radii only shrink
         if finest is None or sampled == len(points) or shrinking[-1] <= finest or not finest > 0:
             return picks, shrinking
@@ -79,8 +75,9 @@ def sampled_cover(points: np.ndarray, count: int, finest: float | None = None,
 
 
 def counts_within(shrinking: np.ndarray, radii: np.ndarray, complete: bool) -> np.ndarray:
-    """(g,) for each of `radii` (g,) how many of the picks whose covered radii are `shrinking` (m,) cover at it,
-    -1 where all m do not; `complete`: the picks are every point, so they cover at any radius."""
+    """(g,) for each of `radii` (g,) how many picks cover at it, given `shrinking` (m,), the radius the picks before
+    each leave covered (sampled_cover): -1 where m picks may not; `complete`: the picks are every point, so they
+    cover at any radius."""
     # the picks before the first whose gap is at most r cover at r: those whose gap exceeds it
     needed = np.searchsorted(-shrinking, -np.asarray(radii, dtype=np.float64), side="left")
     if complete:

@@ -9,12 +9,13 @@ from scipy.spatial import cKDTree
 from model.baselines import fps_simplify
 from model.chamfer_bound import (COVERED_SQUARE, bounded_radius, estimated_chamfer, mean_clipped_square,
                                  mean_square_distance)
-from model.cover import cover_counts, cover_order
+from model.cover import counts_within, cover_counts, cover_order, sampled_cover
 from model.geometry import DISTANCE_QUANTILES
 from model.methods import Learned
 from model.rules import kept_count
 from model.selection import Tile
-from pipeline.engine.tasks import survey_fill, surveyed_picks
+from pipeline.engine.tasks import (FloorJob, ReferenceJob, exact_floor, reference_square, survey_fill,
+                                   surveyed_picks)
 from tiling.budgets import feasible_radius, last_over, least_covers, one_radius_counts, radius_grid
 
 
@@ -53,7 +54,10 @@ def test_a_survey_measures_its_fills_gaps_and_keeps_its_sample_and_farthest_poin
     survey = survey_fill(tile, xyz, budget, sizes, Learned())
     sample = xyz[::len(xyz) // 4096]
     even = cover_order(xyz, surveyed_picks(budget, len(xyz)))
-    assert len(even) == int(np.ceil(1.5 * budget)) and np.array_equal(survey.sample_xyz, sample) and np.array_equal(survey.even_xyz, xyz[even])
+    assert len(even) == int(np.ceil(1.5 * budget)) and np.array_equal(survey.even_xyz, xyz[even])
+    assert np.array_equal(survey.sample_xyz, sample)
+    assert np.all(np.diff(survey.even_radii) <= 0)  # the radius the picks before each leave covered
+    assert np.array_equal(counts_within(survey.even_radii, radius_grid(sizes), complete=False), survey.covers)
     assert len(survey.gaps) == len(DISTANCE_QUANTILES) and np.all(np.diff(survey.gaps) >= 0)
     assert survey.gaps[-1] > 2 * survey.gaps[32]  # the sparse half's far points
     assert len(survey.covers) == len(radius_grid(sizes))
@@ -79,7 +83,7 @@ def test_a_tile_on_its_own_keeps_the_bound_from_its_own_trial_fill():
     assert chamfers[1.3] <= 1.3 < 1.4 < chamfers[100.0], chamfers
 
 
-def test_the_least_covers_read_a_short_survey_as_one_more_than_its_share_and_fit_the_target_from_some_radius():
+def test_the_least_covers_read_a_short_survey_as_one_more_than_its_picks_and_fit_the_target_from_some_radius():
     """A survey samples some picks, so a count it knows is at most their number: -1 means more."""
     covers = np.array([[-1, -1, 28, 10], [-1, 24, 20, 5]])  # (tiles, radii), shares 30 and 25
     least = least_covers(covers, sampled=np.array([30, 25]), counts=np.array([30, 200]))
@@ -120,3 +124,23 @@ def test_one_covering_radius_stands_for_one_farthest_point_sampling_where_the_ti
                    for size, xyz, count in zip(points, tiles, counts)) / points.sum()
     assert picks.sum() == pytest.approx(target, rel=0.02) and picks[1] > 5 * shares[1]
     assert pooled(shares) > 3 * untiled and pooled(picks) == pytest.approx(untiled, rel=0.06)
+
+
+def test_a_tiles_kept_picks_give_its_exact_floor_and_its_reference_at_any_count(tmp_path):
+    """From the file a survey (or a cover count) keeps: the fewest first picks that bring every core point
+    within a radius (checked by brute force), and the sample's mean squared distance to any number of first
+    picks; more picks than were kept is an error, not a quiet clip."""
+    rng = np.random.default_rng(4)
+    core = np.column_stack([rng.uniform(0, 10, 8_000), rng.uniform(0, 10, 8_000), 0.01 * rng.normal(size=8_000)])
+    picks, shrinking = sampled_cover(core, 800)
+    sample = core[::2]
+    path = tmp_path / "survey-0.npz"
+    np.savez(path, even_xyz=core[picks], even_radii=shrinking, sample_xyz=sample)
+    radius = 1.01 * float(shrinking[500])
+    floor = exact_floor(FloorJob(str(path), radius, len(core)))
+    assert cKDTree(core[picks[:floor]]).query(core)[0].max() <= radius
+    assert cKDTree(core[picks[:floor - 1]]).query(core)[0].max() > radius
+    squares = cKDTree(core[picks[:300]]).query(sample)[0] ** 2
+    assert reference_square(ReferenceJob(str(path), 300)) == pytest.approx(squares.mean())
+    with pytest.raises(ValueError, match="900 picks asked of the 800 kept"):
+        reference_square(ReferenceJob(str(path), 900))

@@ -252,7 +252,8 @@ def test_a_surveyed_fills_picks_load_the_core_alone_and_give_the_bytes_of_a_load
 def test_a_run_that_failed_after_its_survey_resumes_to_the_same_bytes(tmp_path, dense_patch, monkeypatch, method):
     """A tile that fails after every survey is saved: the rerun reads the surveys back (voxel counts, fill
     loss) and the tiles already finished, and writes the bytes of a run that never failed (16 tiles, unmerged,
-    so the surveys' counts share out the budgets)."""
+    so the surveys' counts share out the budgets). A survey file of an older format (here without its picks'
+    radii and format number, as a 0.3.12 development build wrote them) is surveyed again, not read."""
     import pipeline.engine.runner as runner
     from pipeline.errors import PipelineError
 
@@ -269,7 +270,12 @@ def test_a_run_that_failed_after_its_survey_resumes_to_the_same_bytes(tmp_path, 
     monkeypatch.setattr(runner, "simplify_tile", fails_from_the_second)
     with pytest.raises(PipelineError, match="finished work kept in"):
         pipeline.run(dense_patch, out, ratio=0.1, method=method, tile_size=4.0, seed=7, merge_tile_points=0, workers=1)
-    assert list(tmp_path.glob(".out.laz.work-*/survey-*.npz")) and not out.exists()
+    surveys = sorted(tmp_path.glob(".out.laz.work-*/survey-*.npz"))
+    assert surveys and not out.exists()
+    with np.load(surveys[0]) as saved:
+        older = {name: saved[name] for name in saved.files if name not in ("survey_format", "even_radii")}
+    with open(surveys[0], "wb") as file:
+        np.savez(file, **older)
     monkeypatch.setattr(runner, "simplify_tile", simplify_tile)
     report = pipeline.run(dense_patch, out, ratio=0.1, method=method, tile_size=4.0, seed=7, merge_tile_points=0)
     assert report.resumed_tiles > 0

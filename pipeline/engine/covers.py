@@ -45,8 +45,7 @@ def cover_floors(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
     radii = radius_grid(sizes)
     floors = count_at(np.array([survey.covers for survey in surveys]), radii, radius)
     kept = np.flatnonzero(floors >= 0)
-    jobs = [FloorJob(str(work.cover_path(tile_id) if tile_id in counted else work.survey_path(tile_id)), radius,
-                     surveys[tile_id].core_count) for tile_id in kept]
+    jobs = [FloorJob(kept_picks(work, int(tile_id), counted), radius, surveys[tile_id].core_count) for tile_id in kept]
     floors[kept] = map_tasks(client, exact_floor, jobs, desc="read floors", progress=progress)
     short = np.flatnonzero(floors < 0)
     if len(short):
@@ -63,16 +62,16 @@ def fps_reference(client: Client | Executor, plan: TilePlan, slices: list[list[S
     """The surveys with the cover counts of tiles short at r* counted past their share (exact from the grid
     radius below r* up), the mean squared distance from the tiles' samples to their FPS picks at r*, pooled by
     core points over the tiles with a trial fill (those the Chamfer estimate covers), and the tiles counted
-    (their picks kept in work.cover_path)."""
+    (their picks kept in work.cover_path). A tile with points but no share of the count (a few points: it
+    has no trial fill) counts as one pick more than it sampled, none, towards r*."""
     radii = radius_grid(sizes)
     counts = np.array([survey.core_count for survey in surveys])
     measured = np.array([len(survey.gaps) > 0 for survey in surveys])
     if not measured.any():
         return surveys, 0.0, frozenset()
     least = surveyed_least(surveys)
-    below = last_over(least, target)  # r* lies past this grid radius (-1: below the grid, kept nearly whole)
-    short = (np.flatnonzero(measured & (np.array([survey.covers[below] for survey in surveys]) < 0)) if below >= 0
-             else np.empty(0, dtype=np.int64))
+    below = max(last_over(least, target), 0)  # r* lies past this grid radius (or below the grid: its first)
+    short = np.flatnonzero(measured & (np.array([survey.covers[below] for survey in surveys]) < 0))
     if len(short):
         jobs = [cover_job(plan, slices, surveys, radii, int(tile_id), tuple(radii), float(radii[below]), work, config,
                           cache_bytes, keep=True) for tile_id in short]
@@ -82,12 +81,17 @@ def fps_reference(client: Client | Executor, plan: TilePlan, slices: list[list[S
             surveys[tile_id] = replace(surveys[tile_id], covers=covers)
         least = surveyed_least(surveys)
     picks = np.maximum(np.rint(one_radius_counts(least, target)), 1).astype(np.int64)
-    kept = set(short.tolist())
+    counted = frozenset(short.tolist())
     tiles = np.flatnonzero(measured)
-    jobs = [ReferenceJob(str(work.cover_path(tile_id) if tile_id in kept else work.survey_path(tile_id)),
-                         int(picks[tile_id])) for tile_id in tiles]
+    jobs = [ReferenceJob(kept_picks(work, int(tile_id), counted), int(picks[tile_id])) for tile_id in tiles]
     squares = np.array(map_tasks(client, reference_square, jobs, desc="measure reference", progress=progress))
-    return surveys, float((squares * counts[tiles]).sum() / counts[tiles].sum()), frozenset(kept)
+    return surveys, float((squares * counts[tiles]).sum() / counts[tiles].sum()), counted
+
+
+def kept_picks(work: WorkDir, tile_id: int, counted: frozenset[int]) -> str:
+    """The file holding a tile's farthest point picks, their radii and its sample: its cover count's where the
+    run `counted` it past its survey's picks, else its survey's."""
+    return str(work.cover_path(tile_id) if tile_id in counted else work.survey_path(tile_id))
 
 
 def surveyed_least(surveys: list[TileSurvey]) -> np.ndarray:

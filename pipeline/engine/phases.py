@@ -145,12 +145,12 @@ def survey_scan(client: Client | Executor, plan: TilePlan, slices: list[list[Sli
     jobs = [SurveyJob(str(work.store_path), str(work.survey_path(tile_id)), tile_id, tuple(slices[tile_id]),
                       overlap, cache_bytes, sizes, config.simplifier, config.ratio, config.seed, rule)
             for tile_id in range(len(plan.tiles))]
-    pending = [job for job in jobs if not Path(job.survey_path).is_file()]
-    fresh = dict(zip((job.tile_id for job in pending),
+    saved = {job.tile_id: load_survey(Path(job.survey_path)) for job in jobs if Path(job.survey_path).is_file()}
+    pending = [job for job in jobs if saved.get(job.tile_id) is None]
+    saved.update(zip((job.tile_id for job in pending),
                      map_tasks(client, survey_tile, pending, plan, desc="survey tiles", progress=progress,
                                cost=core_points(plan))))
-    surveys = [fresh[job.tile_id] if job.tile_id in fresh else load_survey(Path(job.survey_path)) for job in jobs]
-    return surveys, np.array(sizes)
+    return [saved[job.tile_id] for job in jobs], np.array(sizes)
 
 
 @dataclass(frozen=True)

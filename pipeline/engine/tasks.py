@@ -32,6 +32,8 @@ SURVEY_PICKS = 1.5  # a survey's farthest point picks over its tile's share of t
 # reference; bcts at 0.1 left 90 / 48 / 5 of 91 tiles to count again with 1 / 1.25 / 1.5 (the run 30 % slower with
 # 1), and 1.5 did not move a survey's time past this machine's noise (18 bcts_1 tiles, one thread)
 
+SURVEY_FORMAT = 2  # what a survey's file holds: 2 keeps its farthest point picks, their radii and its sample
+
 if TYPE_CHECKING:  # a tile process never reads the scan: laspy and pyproj (about 0.1 s) stay out of its server's import
     from pipeline.io.scan import Piece, Scan
 
@@ -192,10 +194,10 @@ class TileSurvey:
     """What a tile tells the run: occupied voxels (levels,), its core count, mean absolute fill loss,
     the relative loss summed over the core, (quantiles,) spacings of a trial fill's picks, of `picks`, the
     voxels (levels,) those picks occupy, on the core's grids (zeros for a method with no fill), the
-    picks that cover the core at each radius of tiling.budgets.radius_grid(sizes) (-1: more than surveyed_picks;
+    picks that cover the core at each radius of tiling.budgets.radius_grid(sizes) (-1: more than were sampled;
     empty for a method with no fill) and (quantiles,) distances from a sample of core points to the trial
     fill's nearest pick (model.chamfer_bound; empty without a fill). The sample and the farthest point picks
-    stay in the survey's file, for the run's reference (pipeline.engine.reference)."""
+    stay in the survey's file, for the run's reference and floors (pipeline.engine.covers)."""
 
     occupied: np.ndarray
     core_count: int
@@ -212,7 +214,7 @@ class TileSurvey:
 class FillSurvey:
     """A stratified method's measures of one tile's trial fill (TileSurvey's fields of the same names), and
     what its survey's file keeps for the run's reference and floors: the farthest point picks of the core,
-    (picks, 3) in their order, the radius they leave covered after each, (picks,), and the core's sample,
+    (picks, 3) in their order, the radius the picks before each leave covered, (picks,), and the core's sample,
     (s, 3) (model.chamfer_bound.sample_rows)."""
 
     loss: FillLoss
@@ -248,7 +250,8 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     write_atomically(Path(job.survey_path), lambda tmp: save_npz(
         tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
         spacings=fill.spacings, picks=budget, filled=fill.filled, covers=fill.covers, gaps=fill.gaps,
-        even_xyz=fill.even_xyz, even_radii=fill.even_radii, sample_xyz=fill.sample_xyz, **arrays))
+        even_xyz=fill.even_xyz, even_radii=fill.even_radii, sample_xyz=fill.sample_xyz, survey_format=SURVEY_FORMAT,
+        **arrays))
     return survey
 
 
@@ -276,7 +279,7 @@ def surveyed_picks(share: int, points: int) -> int:
 
 @dataclass(frozen=True)
 class CoverJob:
-    """A tile whose survey's picks (its share of the count) fell short of covering its core at a radius the
+    """A tile whose survey's picks (surveyed_picks) fell short of covering its core at a radius the
     run needs (`finest`): how many it needs at each of `radii`, and where its picks and sample are kept for
     the run's reference (None: not kept)."""
 
@@ -284,7 +287,7 @@ class CoverJob:
     tile_id: int
     slices: tuple[Slice, ...]
     cache_bytes: int
-    sample: int  # picks sampled first (phases.first_sample), more as the gap they leave asks
+    sample: int  # picks sampled first (covers.first_sample), more as the gap they leave asks
     radii: tuple[float, ...]
     finest: float
     seed: int
@@ -298,9 +301,8 @@ def count_cover(job: CoverJob, plan: TilePlan) -> np.ndarray:
     at (its core is loaded alone: the same points, in the same order, as its survey's sample)."""
     tile, _, _ = load_tile(job.store_path, job.slices, job.cache_bytes, plan, job.tile_id, 0.0, job.seed, job.rule)
     core_xyz = tile.xyz if tile.core.all() else tile.xyz[tile.core]
-    if len(core_xyz) == 0:
-        return np.zeros(len(job.radii), dtype=np.int64)
-    picks, shrinking = sampled_cover(core_xyz, job.sample, job.finest)
+    picks, shrinking = (sampled_cover(core_xyz, job.sample, job.finest) if len(core_xyz)
+                        else (np.empty(0, dtype=np.int64), np.empty(0)))
     if job.keep_path is not None:
         write_atomically(Path(job.keep_path), lambda tmp: save_npz(
             tmp, even_xyz=core_xyz[picks], even_radii=shrinking, sample_xyz=core_xyz[sample_rows(len(core_xyz))]))
@@ -339,12 +341,17 @@ def reference_square(job: ReferenceJob) -> float:
     """The mean squared distance from the tile's sample to the first `picks` of its farthest point picks."""
     with np.load(job.path) as saved:
         even_xyz, sample_xyz = saved["even_xyz"], saved["sample_xyz"]
-    return mean_square_distance(sample_xyz, even_xyz[:max(1, min(job.picks, len(even_xyz)))])
+    if not 0 < job.picks <= len(even_xyz):
+        raise ValueError(f"{job.path}: {job.picks} picks asked of the {len(even_xyz)} kept")
+    return mean_square_distance(sample_xyz, even_xyz[:job.picks])
 
 
-def load_survey(path: Path) -> TileSurvey:
-    """A finished survey's summary (the per-point loss stays on disk)."""
+def load_survey(path: Path) -> TileSurvey | None:
+    """A finished survey's summary (the per-point loss stays on disk), or None where the file is of another
+    SURVEY_FORMAT (an attempt of older code with the same version: the tile is surveyed again)."""
     with np.load(path) as saved:
+        if "survey_format" not in saved.files or int(saved["survey_format"]) != SURVEY_FORMAT:
+            return None
         return TileSurvey(saved["occupied"], int(saved["core_count"]), float(saved["level"]), float(saved["loss_sum"]),
                           saved["spacings"], int(saved["picks"]), saved["filled"], saved["covers"], saved["gaps"])
 
