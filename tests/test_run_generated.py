@@ -422,6 +422,37 @@ def test_the_default_holds_its_chamfer_distance_within_the_bound_where_detail_dr
     assert chamfers[0] <= 1.35 and chamfers[1] > 1.5, chamfers
 
 
+def test_the_runs_reference_stands_for_one_farthest_point_sampling_of_the_whole_scan(tmp_path, monkeypatch):
+    """A dense plane beside a volume of stray returns, in four tiles (unmerged): the Chamfer bound's reference a
+    run measures (pipeline.engine.covers.fps_reference, observed as the run calls it) is within 10 % of the mean
+    squared distance of one farthest point sampling of the whole scan to the same count (0.1 % measured), where
+    the tiles' samplings at their shares of the count, its reference before 0.3.12, came out 3.8x it on the same
+    scene in two tiles (test_chamfer_bound); the strays' three tiles are sampled past their survey's picks."""
+    import pipeline.engine.phases as phases
+    from model.cover import cover_order
+
+    rng = np.random.default_rng(1)
+    plane = np.column_stack([rng.uniform(0, 4, 40_000), rng.uniform(0, 4, 40_000), 0.01 * rng.normal(size=40_000)])
+    strays = np.column_stack([rng.uniform(4, 16, 4_000), rng.uniform(0, 4, 4_000), rng.uniform(0, 4, 4_000)])
+    scan = np.concatenate([plane, strays])
+    las = write_flat_scene(tmp_path / "strays.las", scan[:, :2], 0.0, rng)
+    las.z = scan[:, 2]
+    las.write(tmp_path / "strays.las")
+    measured, measure = [], phases.fps_reference
+
+    def observed(*args: Any, **kwargs: Any) -> Any:
+        measured.append(measure(*args, **kwargs))
+        return measured[-1]
+
+    monkeypatch.setattr(phases, "fps_reference", observed)
+    pipeline.run(tmp_path / "strays.las", tmp_path / "out.las", ratio=0.1, tile_size=4.0, workers=1,
+                 merge_tile_points=0)
+    (surveys, reference, counted), = measured
+    untiled = np.mean(cKDTree(scan[cover_order(scan, 4_400)]).query(scan)[0] ** 2)
+    assert len(surveys) == 4 and counted == {1, 2, 3}
+    assert reference == pytest.approx(untiled, rel=0.1), reference / untiled
+
+
 def test_two_sites_far_apart_run_in_tiles_within_the_budget(tmp_path):
     """The corridor case in small: two 20 m sites 150 km apart, tiles under max_tile_points, exact count."""
     rng = np.random.default_rng(9)
