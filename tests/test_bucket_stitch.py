@@ -175,6 +175,33 @@ def test_seam_pass_removes_cross_tile_pairs_and_keeps_counts():
     assert distances.min() >= tolerance
 
 
+def test_the_seam_pass_pairs_a_tiles_duplicates_as_one_and_rejects_as_point_pairs_would():
+    """Thousands of returns at one spot in one tile (a sensor's origin, a duplicated export) once made the
+    seam pass list every pair among them (20k: 4 minutes). Grouped by tile and position, the rejections are
+    those of the rule applied point by point (brute force below), duplicates on both sides of a seam included,
+    and 20,000 duplicates resolve at once."""
+    rng = np.random.default_rng(6)
+    tolerance, spot = 0.01, np.array([9.999, 5.0, 0.0])
+    tiles = []
+    for tile_id, x0 in enumerate((0.0, 10.0, 20.0)):
+        xyz = np.column_stack([rng.uniform(x0, x0 + 10, 300), rng.uniform(0, 10, 300), np.zeros(300)])
+        tiles.append(xyz)
+    tiles[0] = np.concatenate([tiles[0], np.repeat(spot[None], 20_000, axis=0)])  # candidates ranked last
+    tiles[1][:50] = spot + [0.002, 0.0, 0.0]  # duplicates across the seam, ranked first
+    tiles[1][50:60] = [10.0, 7.0, 0.0]
+    tiles[0][:10] = [9.995, 7.0, 0.0]
+    budgets, counts = np.array([310, 250, 250]), np.array([len(t) for t in tiles])
+    bands = [SeamBand(tile_id, np.arange(len(xyz)), xyz) for tile_id, xyz in enumerate(tiles)]
+    rejections = resolve_seams(bands, counts, budgets, tolerance)
+    accepted: list[np.ndarray] = []
+    for tile_id, xyz in enumerate(tiles):  # the rule point by point: a candidate near an accepted earlier one
+        earlier = np.concatenate(accepted) if accepted else np.empty((0, 3))
+        near = (cKDTree(earlier).query(xyz)[0] <= tolerance) if len(earlier) else np.zeros(len(xyz), dtype=bool)
+        np.testing.assert_array_equal(rejections.get(tile_id, np.empty(0, int)), np.flatnonzero(near))
+        accepted.append(xyz[first_accepted(len(xyz), int(budgets[tile_id]), np.flatnonzero(near))])
+    assert len(rejections[1]) == 60 and 0 not in rejections
+
+
 def test_a_store_made_again_is_empty_and_a_cut_piece_is_an_error_not_short_rows(tmp_path):
     """A new run's store at a leftover path starts empty; a piece file cut short (a damaged scratch disk)
     fails the read with its name, and never yields fewer rows than the slice asked for."""
