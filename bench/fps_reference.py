@@ -31,7 +31,7 @@ sys.path.insert(0, str(HERE.parent))
 from quality import DEFAULT_DATA, load_scan, untiled_fps, xyz_of  # noqa: E402
 from seams import run_plan  # noqa: E402
 
-from model.chamfer_bound import sample_rows  # noqa: E402
+from model.chamfer_bound import core_sample  # noqa: E402
 from model.cover import cover_order, insertion_radii  # noqa: E402
 from model.geometry import nearest_distance  # noqa: E402
 from model.rules import kept_count  # noqa: E402
@@ -53,7 +53,7 @@ class TileCurve:
         _, first = np.unique(order, return_index=True)
         self.order = order[np.sort(first)]
         self.radii = np.minimum.accumulate(insertion_radii(self.core, self.order))
-        self.sample = self.core[sample_rows(len(core))]
+        self.sample = core_sample(self.core)
 
     def picks_at(self, radius: float) -> int:
         """Picks that cover the core at `radius` (all sampled, if they do not)."""

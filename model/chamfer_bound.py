@@ -67,13 +67,14 @@ def bounded_radius(estimate: Callable[[float], float], limit: float, widest: flo
     return low
 
 
-def sample_rows(count: int) -> slice:
-    """An even stride over `count` rows: SAMPLE_POINTS to twice as many of them (all, for fewer)."""
-    return slice(0, count, max(1, count // SAMPLE_POINTS))
+def core_sample(core_xyz: np.ndarray) -> np.ndarray:
+    """A tile's sample, (s, 3): an even stride over its core's (c, 3) points, SAMPLE_POINTS to twice as many
+    of them (all, for fewer); the same points for the survey, a cover count and a tile on its own."""
+    return core_xyz[::max(1, len(core_xyz) // SAMPLE_POINTS)]
 
 
 def fill_gaps(sample_xyz: np.ndarray, fill_xyz: np.ndarray) -> np.ndarray:
-    """(DISTANCE_QUANTILES,) quantiles of the distance from a tile's sample (s, 3: its core's sample_rows) to the
+    """(DISTANCE_QUANTILES,) quantiles of the distance from a tile's sample (s, 3: core_sample) to the
     nearest of a fill's points (m, 3)."""
     return np.quantile(nearest_distance(fill_xyz, sample_xyz), DISTANCE_QUANTILES)
 
@@ -91,7 +92,7 @@ def tile_radius(core_xyz: np.ndarray, fill_xyz: np.ndarray, budget: int, widest:
     if budget == 0 or len(fill_xyz) == 0:
         return widest
     even_xyz, area_share = even_thinning(core_xyz, budget)
-    sample = core_xyz[sample_rows(len(core_xyz))]
+    sample = core_sample(core_xyz)
     even = nearest_distance(even_xyz, sample)
     covered, gaps, one = float(even.max()), fill_gaps(sample, fill_xyz)[None, :], np.ones(1)
     return bounded_radius(lambda radius: estimated_chamfer(gaps, one, one, radius),

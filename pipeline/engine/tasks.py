@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from model.chamfer_bound import fill_gaps, mean_square_distance, sample_rows
+from model.chamfer_bound import core_sample, fill_gaps, mean_square_distance
 from model.cover import counts_within, cover_counts, sampled_cover
 from model.methods import Fill, Method
 from model.rules import column_mean, column_min, grid_xyz, kept_count, take_records
@@ -215,7 +215,7 @@ class FillSurvey:
     """A stratified method's measures of one tile's trial fill (TileSurvey's fields of the same names), and
     what its survey's file keeps for the run's reference and floors: the farthest point picks of the core,
     (picks, 3) in their order, the radius the picks before each leave covered, (picks,), and the core's sample,
-    (s, 3) (model.chamfer_bound.sample_rows)."""
+    (s, 3) (model.chamfer_bound.core_sample)."""
 
     loss: FillLoss
     spacings: np.ndarray
@@ -265,7 +265,7 @@ def survey_fill(tile: Tile, core_xyz: np.ndarray, budget: int, sizes: np.ndarray
     covers = counts_within(shrinking, radius_grid(sizes), complete=len(even) == len(core_xyz))
     loss = simplifier.fill_loss(tile, budget)
     picks = tile.xyz[trial_fill(tile, budget, loss)]
-    sample = core_xyz[sample_rows(len(core_xyz))]
+    sample = core_sample(core_xyz)
     return FillSurvey(loss, pick_spacings(picks), occupied_voxels(picks, sizes, origin=column_min(core_xyz)), covers,
                       fill_gaps(sample, picks), core_xyz[even], shrinking, sample)
 
@@ -305,7 +305,7 @@ def count_cover(job: CoverJob, plan: TilePlan) -> np.ndarray:
                         else (np.empty(0, dtype=np.int64), np.empty(0)))
     if job.keep_path is not None:
         write_atomically(Path(job.keep_path), lambda tmp: save_npz(
-            tmp, even_xyz=core_xyz[picks], even_radii=shrinking, sample_xyz=core_xyz[sample_rows(len(core_xyz))]))
+            tmp, even_xyz=core_xyz[picks], even_radii=shrinking, sample_xyz=core_sample(core_xyz)))
     return counts_within(shrinking, np.array(job.radii), complete=len(picks) == len(core_xyz))
 
 
