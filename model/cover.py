@@ -11,9 +11,9 @@ before the first whose insertion radius is at most r.
 from __future__ import annotations
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
 from model.baselines import fps_order
+from model.geometry import PointTree
 
 EARLIER_NEIGHBOURS = 8  # nearest picks of its own block searched for a pick's nearest earlier one (16 gave the
 # same radii on a bcts tile, 12 % slower)
@@ -32,15 +32,18 @@ def insertion_radii(points: np.ndarray, picks: np.ndarray) -> np.ndarray:
     before it (inf for the first). Worked out in doubling
     blocks: a pick's nearest among the picks before its block (one tree per block), and among the
     EARLIER_NEIGHBOURS nearest of its own block those before it; where its nearest earlier pick is in its
-    block but not among those (rare), the value is an upper bound, which only ever asks for more picks."""
+    block but not among those (rare), the value is an upper bound, which only ever asks for more picks. Picks
+    past a tile's distinct points are exact twins: a block's tree holds at most EARLIER_NEIGHBOURS of them at
+    a position (model.geometry.PointTree), the earliest, so a later twin finds an earlier one at 0; the trees of
+    earlier picks hold one."""
     xyz = np.ascontiguousarray(points[picks], dtype=np.float64)
     gaps = np.full(len(picks), np.inf)
     first = 1
     while first < len(picks):
         block = xyz[first:min(2 * first, len(picks))]
-        before, _ = KDTree(xyz[:first]).query(block, k=1)
+        before, _ = PointTree.of(xyz[:first], 1).query(block, 1, squared=False)
         k = min(EARLIER_NEIGHBOURS, len(block))
-        distance, index = KDTree(block).query(block, k=k)
+        distance, index = PointTree.of(block, k).query(block, k, squared=False)
         earlier = index.reshape(len(block), k) < np.arange(len(block))[:, None]
         within = np.where(earlier, distance.reshape(len(block), k), np.inf).min(axis=1)
         gaps[first:first + len(block)] = np.minimum(before.reshape(-1), within)

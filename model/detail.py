@@ -24,9 +24,8 @@ from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
-from model.geometry import FRAME_POINTS, local_features, nearest_member, roughness
+from model.geometry import FRAME_POINTS, PointTree, local_features, nearest_member, roughness
 from model.learning import DETAIL_WEIGHTS
 from model.selection import FillLoss, Tile
 from model.rules import morton_order
@@ -60,7 +59,7 @@ def described(tile: Tile, budget: int, phase: float = 0.5) -> tuple[np.ndarray, 
     are those of one pass."""
     core = np.flatnonzero(tile.core)
     xyz = np.ascontiguousarray(tile.xyz, dtype=np.float64)
-    tree = KDTree(xyz)
+    tree = PointTree.of(xyz, NEIGHBOURS)
     features = np.empty((len(core), DESCRIPTORS), dtype=np.float32)
     kbar = np.empty(len(core), dtype=np.float32)
     for block in np.array_split(tile.core_order, -(-len(core) // SURVEY_BLOCK)) if len(core) else []:
@@ -71,9 +70,9 @@ def described(tile: Tile, budget: int, phase: float = 0.5) -> tuple[np.ndarray, 
     return features, float(measured.mean()) if len(measured) else 0.0
 
 
-def described_rows(xyz: np.ndarray, rows: np.ndarray, tree: KDTree) -> tuple[np.ndarray, np.ndarray]:
+def described_rows(xyz: np.ndarray, rows: np.ndarray, tree: PointTree) -> tuple[np.ndarray, np.ndarray]:
     """(m, 12) float32 descriptors of xyz[rows] but for the last two (set by described), and their mean
-    curvature (m,) float32; `tree` holds xyz (n, 3) float64. Rows in curve order, so the rings of
+    curvature (m,) float32; `tree` holds xyz (n, 3) float64 (PointTree). Rows in curve order, so the rings of
     neighbours beyond them (queried again by the next block) are a thin border."""
     local = local_features(xyz, rows, NEIGHBOURS, np.arange(len(rows)), tree)
     nbrs = local.nbrs

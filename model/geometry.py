@@ -12,7 +12,7 @@ from typing import Iterator
 import numpy as np
 from pykdtree.kdtree import KDTree
 
-from model.rules import morton_order
+from model.rules import capped_twins, morton_order, most_twins
 
 CHUNK_POINTS = 200_000  # points per batch of the metrics' queries (model/metrics.py, model/sdm.py)
 QUERY_POINTS = 32_768  # points per kd-tree query: its float64 distances and indices are temporaries
@@ -35,6 +35,36 @@ class Neighbours:
         return self.indices.shape[1]
 
 
+@dataclass(frozen=True)
+class PointTree:
+    """A kd-tree of (n, 3) float64 points for k-nearest queries, holding at most k points at any one position.
+
+    pykdtree's search for 4 or more neighbours of one of c exact twins visits all c of them (50,000 twins:
+    0.3 ms a query, so a tile holding a scanner's no-return spot of 100,000 returns spent minutes in its
+    survey). A list of k nearest holds at most k twins of a position whatever the tree holds, so the distances
+    and positions listed are those of the whole cloud; only which twin stands for a position may change,
+    and twins' features are the same. Below k + 1 twins a position is held whole: the tree is then the
+    plain one (a hash sort checks it: 0.2 ms on a 22k-point tile, whose tree takes 2.8 ms).
+    """
+
+    tree: KDTree
+    held: np.ndarray | None  # (m,) indices of the points the tree holds, ascending; None: every point
+
+    @classmethod
+    def of(cls, xyz: np.ndarray, k: int) -> PointTree:
+        """The tree of `xyz` (n, 3) float64 for queries of up to `k` neighbours."""
+        if most_twins(xyz) <= k:
+            return cls(KDTree(xyz), None)
+        held = capped_twins(xyz, k)
+        return cls(KDTree(np.ascontiguousarray(xyz[held])), held)
+
+    def query(self, points: np.ndarray, k: int, squared: bool = True) -> tuple[np.ndarray, np.ndarray]:
+        """Distances (squared unless `squared` is False) and indices into the tree's points of the k nearest
+        to each of (m, 3) float64 `points`, nearest first: (m, k) each, (m,) for k = 1."""
+        distance, index = self.tree.query(points, k, sqr_dists=squared)
+        return distance, index if self.held is None else self.held[index]
+
+
 def knn(xyz: np.ndarray, k: int = 16) -> Neighbours:
     """The k nearest neighbours of every point (k clipped to n), queried in chunks to bound memory.
 
@@ -42,16 +72,17 @@ def knn(xyz: np.ndarray, k: int = 16) -> Neighbours:
     the same distances (nanoflann and Open3D's search measured no faster on a 32k-point tile).
     """
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
-    return neighbours(KDTree(xyz), xyz, np.arange(len(xyz)), k)
+    return neighbours(PointTree.of(xyz, k), xyz, np.arange(len(xyz)), k)
 
 
-def neighbours(tree: KDTree, xyz: np.ndarray, rows: np.ndarray, k: int, order: np.ndarray | None = None) -> Neighbours:
+def neighbours(tree: PointTree, xyz: np.ndarray, rows: np.ndarray, k: int,
+               order: np.ndarray | None = None) -> Neighbours:
     """The k nearest of the (n, 3) float64 points `tree` holds (`xyz`) to each of xyz[rows]: (len(rows), k).
 
     Queries go in Morton order (`order`, morton_order(xyz[rows]), if the caller has it) so consecutive
     ones walk the same nodes (700k shuffled points: 7.0 s in input order, 1.6 s with the sort). Among
-    exact duplicates the tree may list a twin before the point itself; such rows are fixed so column 0
-    is always the point.
+    exact duplicates the tree may list a twin before the point itself, or not hold the point at all
+    (PointTree); such rows are fixed so column 0 is always the point.
     """
     k = min(k, len(xyz))
     indices = np.empty((len(rows), k), dtype=np.int64)
@@ -61,7 +92,7 @@ def neighbours(tree: KDTree, xyz: np.ndarray, rows: np.ndarray, k: int, order: n
     order = morton_order(xyz[rows]) if order is None else order
     for start in range(0, len(rows), QUERY_POINTS):
         at = order[start : start + QUERY_POINTS]
-        dist, idx = tree.query(xyz[rows[at]], k, sqr_dists=True)
+        dist, idx = tree.query(xyz[rows[at]], k)
         indices[at] = idx.reshape(len(at), k)
         sq_dist[at] = dist.reshape(len(at), k)
     twins = np.flatnonzero(indices[:, 0] != rows)
@@ -87,8 +118,8 @@ def nearest_member(xyz: np.ndarray, members: np.ndarray, queries: np.ndarray) ->
     found = slot[queries]
     rest = np.flatnonzero(found < 0)
     if len(rest):
-        tree = KDTree(np.ascontiguousarray(xyz[members], dtype=np.float64))
-        _, index = tree.query(np.ascontiguousarray(xyz[queries[rest]], dtype=np.float64), k=1)
+        tree = PointTree.of(np.ascontiguousarray(xyz[members], dtype=np.float64), 1)
+        _, index = tree.query(np.ascontiguousarray(xyz[queries[rest]], dtype=np.float64), 1)
         found[rest] = index
     return found
 
@@ -280,17 +311,17 @@ class LocalFeatures:
 
 
 def local_features(xyz: np.ndarray, rows: np.ndarray, k: int = 16, order: np.ndarray | None = None,
-                   tree: KDTree | None = None) -> LocalFeatures:
+                   tree: PointTree | None = None) -> LocalFeatures:
     """Features of xyz[rows] as point_features gives them on the whole cloud, querying only the rows and the
     two rings of neighbours their mean curvature and its spread reach: a tile's halo is there as
     neighbours, and most of a fixed-width halo lies beyond those rings on a dense scan. `order`:
-    a good query order of the rows (morton_order(xyz[rows])), if the caller has one; `tree`: a kd-tree of
-    xyz (float64), if the caller has one."""
+    a good query order of the rows (morton_order(xyz[rows])), if the caller has one; `tree`: PointTree.of(xyz,
+    k), if the caller has one."""
     xyz = np.ascontiguousarray(xyz, dtype=np.float64)
     if len(rows) == 0:
         empty = Neighbours(np.empty((0, min(k, len(xyz))), dtype=np.int64), np.empty((0, min(k, len(xyz))), np.float32))
         return LocalFeatures(empty, np.empty((0, 3)), np.zeros(len(xyz), np.float32), np.zeros(len(xyz), np.float32))
-    tree = KDTree(xyz) if tree is None else tree
+    tree = PointTree.of(xyz, k) if tree is None else tree
     queried = np.zeros(len(xyz), dtype=bool)
     kappa = np.zeros(len(xyz), dtype=np.float32)
     found: list[tuple[np.ndarray, Neighbours]] = []  # the rows and the first ring, with their neighbours
@@ -319,6 +350,6 @@ DISTANCE_QUANTILES = np.linspace(0.0, 1.0, 65)  # a tile reports a distribution 
 
 def nearest_distance(points: np.ndarray, queries: np.ndarray) -> np.ndarray:
     """Distance from each query to the nearest of `points` (both (m, 3))."""
-    tree = KDTree(np.ascontiguousarray(points, dtype=np.float64))
-    distance, _ = tree.query(np.ascontiguousarray(queries, dtype=np.float64), k=1)
+    tree = PointTree.of(np.ascontiguousarray(points, dtype=np.float64), 1)
+    distance, _ = tree.query(np.ascontiguousarray(queries, dtype=np.float64), 1, squared=False)
     return distance

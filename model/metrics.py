@@ -24,9 +24,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
-from model.geometry import CHUNK_POINTS, PointFeatures, point_features
+from model.geometry import CHUNK_POINTS, PointFeatures, PointTree, point_features
 from model.sdm import structural_distortion
 
 
@@ -58,12 +57,12 @@ def nearest(points: np.ndarray, queries: np.ndarray) -> Match:
     """The nearest of `points` to each query, queried in chunks so millions of queries fit in memory."""
     points = np.ascontiguousarray(points, dtype=np.float64)
     queries = np.ascontiguousarray(queries, dtype=np.float64)
-    tree = KDTree(points)
+    tree = PointTree.of(points, 1)
     sq_dist = np.empty(len(queries))
     index = np.empty(len(queries), dtype=np.int64)
     for start in range(0, len(queries), CHUNK_POINTS):
         stop = start + CHUNK_POINTS
-        sq_dist[start:stop], index[start:stop] = tree.query(queries[start:stop], 1, sqr_dists=True)
+        sq_dist[start:stop], index[start:stop] = tree.query(queries[start:stop], 1)
     return Match(sq_dist, index)
 
 

@@ -23,12 +23,11 @@ from __future__ import annotations
 from typing import Callable
 
 import numpy as np
-from pykdtree.kdtree import KDTree
 
 from model.baselines import first_occurrences
 from model.chamfer_bound import tile_radius
 from model.cover import cover_order
-from model.geometry import DISTANCE_QUANTILES, local_features, nearest_distance, nearest_member
+from model.geometry import DISTANCE_QUANTILES, PointTree, local_features, nearest_distance, nearest_member
 from model.rules import distinct_of_sorted, interleaved, radical_inverse_order
 from model.selection import FillLoss, Selection, Tile, topped_up
 from model.set_cover import greedy_set_cover
@@ -163,7 +162,7 @@ def pick_spacings(picks: np.ndarray) -> np.ndarray:
     picks): pooled over tiles' trial fills, the scan's typical output spacing."""
     if len(picks) < 2:
         return np.empty(0)
-    distance, _ = KDTree(np.ascontiguousarray(picks, dtype=np.float64)).query(picks, k=2)
+    distance, _ = PointTree.of(np.ascontiguousarray(picks, dtype=np.float64), 2).query(picks, 2, squared=False)
     return np.quantile(distance[:, 1], DISTANCE_QUANTILES)
 
 
@@ -221,7 +220,7 @@ def typical_spacing(points: np.ndarray) -> float:
     if len(points) < 2:
         return 0.0
     points = np.ascontiguousarray(points, dtype=np.float64)
-    distance, _ = KDTree(points).query(points, k=2)
+    distance, _ = PointTree.of(points, 2).query(points, 2, squared=False)
     return float(np.median(distance[:, 1]))
 
 

@@ -1,6 +1,7 @@
 """Cover counts: how many farthest-point picks leave no point beyond a radius (a run's tile floors)."""
 from __future__ import annotations
 
+import fpsample
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -44,6 +45,26 @@ def test_farthest_point_sampling_stays_exact_with_buckets_that_grow_like_the_squ
     for pick in order[1:]:
         assert nearest[pick] == nearest.max()
         nearest = np.minimum(nearest, np.sqrt(((xyz - xyz[pick]) ** 2).sum(axis=1)))
+
+
+def test_farthest_point_sampling_of_a_spot_of_twins_picks_each_position_once_then_repeats_as_fpsample_does():
+    """A position holding more points than a bucket of fpsample's tree (a scanner's no-return spot) costs fpsample
+    a pass over the twins for each pick past the distinct points: the sampling runs on one point of each
+    position instead, still farthest point sampling, and then repeats its first pick as fpsample repeats once
+    every point left is a twin of a pick; insertion radii read those repeats as 0."""
+    xyz = np.concatenate([np.zeros((5_000, 3)), plane_with_strays()[:1_000]])
+    order = fps_order(xyz.astype(np.float32), 1_500, 7)
+    assert len(order) == 1_500 and len(np.unique(order)) == 1_001
+    assert set(order[:1_001].tolist()) >= set(range(5_000, 6_000)) and (order[1_001:] == order[0]).all()
+    nearest = np.sqrt(((xyz - xyz[order[0]]) ** 2).sum(axis=1))
+    for pick in order[1:1_001]:  # each pick the point farthest from the picks before it
+        assert nearest[pick] == nearest.max()
+        nearest = np.minimum(nearest, np.sqrt(((xyz - xyz[pick]) ** 2).sum(axis=1)))
+    gaps = insertion_radii(xyz, order)
+    assert (gaps[1_001:] == 0).all() and gaps[1_000] > 0
+    few = np.concatenate([np.zeros((3, 3)), xyz[5_000:]])  # fewer twins than a bucket: fpsample's own order
+    assert fps_order(few.astype(np.float32), 500, 7).tolist() == fpsample.bucket_fps_kdline_sampling(
+        few.astype(np.float32), 500, h=bucket_height(len(few)), start_idx=7).tolist()
 
 
 def test_a_cover_count_of_picks_leaves_no_point_beyond_the_radius_and_one_fewer_does():

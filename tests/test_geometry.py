@@ -3,9 +3,12 @@ import numpy as np
 import pytest
 
 from model import geometry
-from model.geometry import (bandwidth, curvature, knn, local_eigenvalues, local_features, local_frames, mean_curvature,
-                            nearest_member, point_features, roughness)
-from model.rules import column_max, column_mean, column_min, grid_xyz, morton_order, stable_argsort
+from pykdtree.kdtree import KDTree
+
+from model.geometry import (PointTree, bandwidth, curvature, knn, local_eigenvalues, local_features, local_frames,
+                            mean_curvature, nearest_member, neighbours, point_features, roughness)
+from model.rules import (capped_twins, column_max, column_mean, column_min, grid_xyz, morton_order, most_twins,
+                         stable_argsort)
 from tiling.plan import DensityGrid
 
 
@@ -194,6 +197,50 @@ def test_the_point_itself_comes_first_among_duplicates():
     np.testing.assert_array_equal(many.indices[:, 0], np.arange(200))
     features = point_features(xyz)
     assert np.isfinite(features.mean_curvature).all()
+
+
+def spot_of_twins(twins: int = 2_000, seed: int = 1) -> np.ndarray:
+    """A curved sheet with a scanner's no-return spot: `twins` exact copies of one point of it, then the sheet."""
+    sheet = wavy(3_000, seed)
+    return np.concatenate([np.repeat(sheet[:1], twins, axis=0), sheet])
+
+
+def test_a_tree_holds_k_twins_of_a_position_and_lists_the_whole_clouds_neighbours():
+    """pykdtree walks every twin of a position for each of them (quadratic in a no-return spot): PointTree holds
+    only k of them, which lists the same distances, and positions, as a tree of every point; a cloud without
+    a larger group gets the plain tree."""
+    xyz = spot_of_twins()
+    assert most_twins(xyz) == 2_001 and most_twins(wavy()) == 1 and most_twins(np.empty((0, 3))) == 0
+    latent = np.repeat(np.random.default_rng(2).normal(size=(500, 1)), 8, axis=1)  # equal columns cannot cancel
+    assert most_twins(latent) == 1 and most_twins(np.concatenate([latent, latent[:3]])) == 2
+    held = capped_twins(xyz, 16)
+    assert len(held) == len(xyz) - 2_001 + 16 and (np.diff(held) > 0).all()
+    assert PointTree.of(xyz, 16).held is not None and PointTree.of(wavy(), 16).held is None
+    capped = neighbours(PointTree.of(xyz, 16), xyz, np.arange(len(xyz)), 16)
+    plain = neighbours(PointTree(KDTree(xyz), None), xyz, np.arange(len(xyz)), 16)
+    np.testing.assert_array_equal(capped.sq_dist, plain.sq_dist)
+    np.testing.assert_array_equal(xyz[capped.indices], xyz[plain.indices])
+    np.testing.assert_array_equal(capped.indices[:, 0], np.arange(len(xyz)))
+    for k in (1, 2):  # nearest and nearest-other searches
+        distance, index = PointTree.of(xyz, k).query(xyz, k, squared=False)
+        expected, _ = KDTree(xyz).query(xyz, k)
+        np.testing.assert_array_equal(distance, expected)
+        np.testing.assert_array_equal(xyz[index], xyz[KDTree(xyz).query(xyz, k)[1]])
+
+
+def test_features_of_a_spot_of_twins_are_those_of_a_tree_holding_every_twin():
+    """Which twin a capped tree lists changes no feature: the spot's twins are flat (their neighbours all at
+    distance 0), and every other point's neighbours lie at the same positions."""
+    xyz = spot_of_twins()
+    features = point_features(xyz)
+    nbrs = neighbours(PointTree(KDTree(xyz), None), xyz, np.arange(len(xyz)), 16)
+    kappa = curvature(local_eigenvalues(xyz, nbrs))
+    np.testing.assert_array_equal(features.kappa, kappa)
+    np.testing.assert_array_equal(features.mean_curvature, mean_curvature(kappa, nbrs, bandwidth(nbrs)))
+    assert (features.kappa[:2_001] == 0).all()
+    members = np.arange(0, len(xyz), 2)  # nearest member: the spot's twins find one of theirs at the spot
+    found = nearest_member(xyz, members, np.arange(len(xyz)))
+    np.testing.assert_array_equal(xyz[members[found]], xyz[members[KDTree(xyz[members]).query(xyz, 1)[1]]])
 
 
 def test_k_is_clipped_to_the_point_count():
