@@ -74,7 +74,7 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf, cover_spacing
     rng = np.random.default_rng(tile.seed)
     phase = rng.random()
     loss = loss_of(tile, planned) if context is None else context.loss
-    curve_weights = curve_of(fill_weights(loss, strength if context is None else context.detail_scale), curve)
+    curve_weights = curve_of(keep_weights(tile, loss, strength if context is None else context.detail_scale), curve)
     trial = weighted_picks(curve, curve_weights, planned, phase)
     radius = context.cover_radius if context is not None else own_radius(
         tile, trial if strength == 1.0 else trial_fill(tile, planned, loss, phase), planned, cover_spacings,
@@ -86,7 +86,8 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf, cover_spacing
         fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase),
                                          planned, radius, len(hole_cover(tile.xyz, trial, core, radius, curve)))
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
-    return Selection.of(tile, topped_up(order, core, budget, rng))
+    picks = topped_up(order, core if tile.fill_mask is None else np.flatnonzero(tile.fill_mask), budget, rng)
+    return Selection.of(tile, picks if len(picks) == budget else topped_up(picks, core, budget, rng))  # twins last
 
 
 def at_cover_floor(budget: int | np.ndarray, cover_count: int | np.ndarray) -> bool | np.ndarray:
@@ -144,6 +145,16 @@ def fill_weights(loss: FillLoss, detail_scale: float) -> np.ndarray | None:
     return None if loss.relative is None else 1.0 + detail_scale * loss.relative
 
 
+def keep_weights(tile: Tile, loss: FillLoss, detail_scale: float) -> np.ndarray | None:
+    """(n,) the fill's keep weights (fill_weights), 0 at exact twins past the first of a position
+    (Tile.fill_mask): a fill takes twins only where its count asks for more points than the core has
+    positions (topped up); None: equal weights."""
+    weights, mask = fill_weights(loss, detail_scale), tile.fill_mask
+    if mask is None:
+        return weights
+    return mask.astype(np.float64) if weights is None else weights * mask
+
+
 def curve_of(weights: np.ndarray | None, curve: np.ndarray) -> np.ndarray | None:
     """The weights of the points in curve order (None stays None)."""
     return None if weights is None else weights[curve]
@@ -154,7 +165,7 @@ def trial_fill(tile: Tile, budget: int, loss: FillLoss, phase: float = 0.5) -> n
     cover): what a run's survey measures a tile's spacing and holes on (at phase 0.5), whatever the
     method's loss strength, so the hole radius is the default's for any."""
     curve = tile.curve
-    return weighted_picks(curve, curve_of(fill_weights(loss, 1.0), curve), min(budget, tile.core_count), phase)
+    return weighted_picks(curve, curve_of(keep_weights(tile, loss, 1.0), curve), min(budget, tile.core_count), phase)
 
 
 def pick_spacings(picks: np.ndarray) -> np.ndarray:
@@ -191,11 +202,14 @@ def weighted_picks(curve: np.ndarray, weights: np.ndarray | None, count: int, ph
 
 
 def keep_probabilities(weights: np.ndarray, count: int) -> np.ndarray:
-    """min(1, c * weights) with c such that they sum to `count` (<= len(weights))."""
+    """min(1, c * weights) with c such that they sum to `count` (<= len(weights)), or, where fewer points have
+    a positive weight, 1 at each of them."""
     probabilities = np.zeros(len(weights))
     free = np.ones(len(weights), dtype=bool)
     left = float(count)
     while free.any():
+        if not weights[free].sum() > 0:  # only zero weights left (twins past the first): never picked
+            break
         probabilities[free] = weights[free] * (left / weights[free].sum())
         full = free & (probabilities >= 1)
         if not full.any():

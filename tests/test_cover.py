@@ -146,9 +146,9 @@ def test_a_tiles_own_count_starts_from_what_its_surveys_gap_asks_for():
 
     radii = radius_grid(np.array([1.0, 2.0, 4.0]))
     covers = np.where(radii >= 2.0, 50, -1)
-    survey = TileSurvey(np.zeros(3), 10_000, 0.0, 0.0, np.empty(0), 100, np.zeros(3), covers, np.empty(0))
+    survey = TileSurvey(np.zeros(3), 10_000, 10_000, 0.0, 0.0, np.empty(0), 100, np.zeros(3), covers, np.empty(0))
     assert first_sample(survey, radii, 1.0) == int(np.ceil(1.25 * 150 * 4))  # gap 2: 4x the picks, and a quarter
-    unknown = TileSurvey(np.zeros(3), 10_000, 0.0, 0.0, np.empty(0), 100, np.zeros(3), np.full(len(radii), -1),
+    unknown = TileSurvey(np.zeros(3), 10_000, 10_000, 0.0, 0.0, np.empty(0), 100, np.zeros(3), np.full(len(radii), -1),
                          np.empty(0))
     assert first_sample(unknown, radii, 1.0) == 150
     xyz = plane_with_strays(5)

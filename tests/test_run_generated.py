@@ -604,3 +604,23 @@ def test_the_default_merge_limit_is_bounded_by_a_smaller_tile_limit(tmp_path):
     assert RunConfig(method="paper").merge_limit == 0 == RunConfig(method="paper-refined").merge_limit
     report = run_scan([scan], tmp_path / "out.las", config)
     assert report.output_points == 3_000 and 4 < report.tiles < 64
+
+
+@pytest.mark.parametrize("method", ["learned", "fps"])
+def test_a_spot_of_twins_keeps_one_output_point_and_the_count_stays_exact(tmp_path, method):
+    """A scanner's no-return spot (8,000 returns at one position above 32,000 of ground): its twins are surveyed
+    and sampled as one point (model.geometry.PointTree, model.baselines.distinct_fps_order,
+    model.selection.Tile.fill_mask), so the run keeps one of them and spends the rest of the count on the
+    ground, still exactly round(ratio * N)."""
+    rng = np.random.default_rng(8)
+    xy = rng.uniform(0, 16, size=(40_000, 2))
+    xy[:8_000] = [8.0, 8.0]
+    path = tmp_path / "spot.las"
+    las = write_flat_scene(path, xy, 0.01, rng)
+    las.z[:8_000] = 2.0  # above the ground, as a sensor's origin: a position the output must keep
+    las.write(path)
+    result = pipeline.run(path, tmp_path / "out.laz", ratio=0.1, method=method, tile_size=6.0, workers=1)
+    kept = laspy.read(tmp_path / "out.laz")
+    assert len(kept.points) == result.output_points == 4_000
+    at_spot = (np.asarray(kept.x) == 500_008.0) & (np.asarray(kept.y) == 4_000_008.0) & (np.asarray(kept.z) == 2.0)
+    assert at_spot.sum() == 1

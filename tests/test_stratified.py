@@ -228,3 +228,25 @@ def test_candidates_settled_along_the_curve_are_within_reach_and_the_cover_is_un
         assert (distance[near] <= radius).all() and near.sum() > 0.7 * (distance <= radius).sum() > 0
         np.testing.assert_array_equal(hole_cover(xyz, kept, candidates, radius, tile.curve),
                                       hole_cover(xyz, kept, candidates, radius))
+
+
+def sheet_with_a_spot(twins: int = 4_000, seed: int = 5) -> Tile:
+    """A 20 x 20 m plane of 8,000 points and a scanner's no-return spot: `twins` exact copies of one point above it."""
+    rng = np.random.default_rng(seed)
+    plane = np.column_stack([rng.uniform(0, 20, size=(8_000, 2)), rng.normal(0, 0.005, 8_000)])
+    xyz = np.concatenate([np.repeat([[10.0, 10.0, 1.5]], twins, axis=0), plane])
+    return Tile(xyz - 10.0, np.ones(len(xyz), bool), np.zeros(3), seed=6)
+
+
+@pytest.mark.parametrize("method", ["stratified", "learned"])
+def test_a_fill_keeps_one_point_of_a_spot_of_twins_until_the_count_asks_for_more_than_the_positions(method):
+    """Exact twins add no shape: the fill weighs them 0, so the spot keeps one point and the plane the rest; a
+    budget past the tile's positions keeps every position and tops up with twins."""
+    tile = sheet_with_a_spot()
+    assert tile.positions == 8_001 and tile.fill_mask.sum() == 8_001 and not tile.fill_mask[1:4_000].any()
+    at_spot = np.arange(len(tile.xyz)) < 4_000
+    kept = get_simplifier(method)(tile, 1_200).indices
+    assert len(np.unique(kept)) == 1_200 and at_spot[kept].sum() == 1
+    everything = get_simplifier(method)(tile, 9_000).indices
+    assert len(np.unique(everything)) == 9_000 and (~at_spot[everything]).sum() == 8_000
+    assert Tile(tile.xyz[4_000:], np.ones(8_000, bool), np.zeros(3), 6).fill_mask is None  # no twins: as before

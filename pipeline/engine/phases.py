@@ -179,7 +179,7 @@ def scan_fill(surveys: list[TileSurvey], occupied: np.ndarray, sizes: np.ndarray
     `planned(radius, weights)` gives at the default's weights (strength 1: the radius is the default's at any
     strength), down to `lowest` at most (tiling.budgets.feasible_radius: below it the floors would exceed the
     target and tiles would cut their hole cover short)."""
-    counts, levels = np.array([s.core_count for s in surveys]), np.array([s.level for s in surveys])
+    counts, levels = np.array([s.positions for s in surveys]), np.array([s.level for s in surveys])  # twins weigh 0
     loss_sums = np.array([s.loss_sum for s in surveys])
     weights, scales = saliency_weights(counts, levels, loss_sums, method.loss_strength())
     spacing = pooled_quantile([s.spacings for s in surveys], np.array([s.picks for s in surveys]))

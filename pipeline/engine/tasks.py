@@ -32,7 +32,8 @@ SURVEY_PICKS = 1.5  # a survey's farthest point picks over its tile's share of t
 # reference; bcts at 0.1 left 90 / 48 / 5 of 91 tiles to count again with 1 / 1.25 / 1.5 (the run 30 % slower with
 # 1), and 1.5 did not move a survey's time past this machine's noise (18 bcts_1 tiles, one thread)
 
-SURVEY_FORMAT = 2  # what a survey's file holds: 2 keeps its farthest point picks, their radii and its sample
+SURVEY_FORMAT = 3  # what a survey's file holds: 2 keeps its farthest point picks, their radii and its sample; 3
+# its positions (Tile.positions), the share it is surveyed at
 
 if TYPE_CHECKING:  # a tile process never reads the scan: laspy and pyproj (about 0.1 s) stay out of its server's import
     from pipeline.io.scan import Piece, Scan
@@ -191,8 +192,9 @@ class SurveyJob:
 
 @dataclass(frozen=True)
 class TileSurvey:
-    """What a tile tells the run: occupied voxels (levels,), its core count, mean absolute fill loss,
-    the relative loss summed over the core, (quantiles,) spacings of a trial fill's picks, of `picks`, the
+    """What a tile tells the run: occupied voxels (levels,), its core count and positions (Tile.positions: the
+    core but for exact twins, whose share `picks` is), mean absolute fill loss, the relative loss summed over
+    the positions, (quantiles,) spacings of a trial fill's picks, of `picks`, the
     voxels (levels,) those picks occupy, on the core's grids (zeros for a method with no fill), the
     picks that cover the core at each radius of tiling.budgets.radius_grid(sizes) (-1: more than were sampled;
     empty for a method with no fill) and (quantiles,) distances from a sample of core points to the trial
@@ -201,6 +203,7 @@ class TileSurvey:
 
     occupied: np.ndarray
     core_count: int
+    positions: int
     level: float
     loss_sum: float
     spacings: np.ndarray
@@ -239,16 +242,18 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
                            job.rule)
     core_xyz, sizes = tile.xyz if tile.core.all() else tile.xyz[tile.core], np.asarray(job.sizes)
     occupied = occupied_voxels(core_xyz, sizes)
-    budget = kept_count(job.ratio, tile.core_count)
+    budget = kept_count(job.ratio, tile.positions)
     fill = (survey_fill(tile, core_xyz, budget, sizes, job.simplifier) if isinstance(job.simplifier, Fill)
             else FillSurvey.empty(len(sizes), np.empty(0, dtype=np.int64)))
     core_loss = None if fill.loss.relative is None else fill.loss.relative[tile.core]
-    loss_sum = float(core_loss.sum()) if core_loss is not None else 0.0
-    survey = TileSurvey(occupied, tile.core_count, fill.loss.level, loss_sum, fill.spacings, budget, fill.filled,
-                        fill.covers, fill.gaps)
+    fillable = core_loss if core_loss is None or tile.fill_mask is None else core_loss[tile.fill_mask[tile.core]]
+    loss_sum = float(fillable.sum()) if fillable is not None else 0.0
+    survey = TileSurvey(occupied, tile.core_count, tile.positions, fill.loss.level, loss_sum, fill.spacings, budget,
+                        fill.filled, fill.covers, fill.gaps)
     arrays = {} if core_loss is None else {"relative": core_loss.astype(np.float32)}
     write_atomically(Path(job.survey_path), lambda tmp: save_npz(
-        tmp, occupied=occupied, core_count=survey.core_count, level=survey.level, loss_sum=loss_sum,
+        tmp, occupied=occupied, core_count=survey.core_count, positions=survey.positions, level=survey.level,
+        loss_sum=loss_sum,
         spacings=fill.spacings, picks=budget, filled=fill.filled, covers=fill.covers, gaps=fill.gaps,
         even_xyz=fill.even_xyz, even_radii=fill.even_radii, sample_xyz=fill.sample_xyz, survey_format=SURVEY_FORMAT,
         **arrays))
@@ -352,8 +357,9 @@ def load_survey(path: Path) -> TileSurvey | None:
     with np.load(path) as saved:
         if "survey_format" not in saved.files or int(saved["survey_format"]) != SURVEY_FORMAT:
             return None
-        return TileSurvey(saved["occupied"], int(saved["core_count"]), float(saved["level"]), float(saved["loss_sum"]),
-                          saved["spacings"], int(saved["picks"]), saved["filled"], saved["covers"], saved["gaps"])
+        return TileSurvey(saved["occupied"], int(saved["core_count"]), int(saved["positions"]), float(saved["level"]),
+                          float(saved["loss_sum"]), saved["spacings"], int(saved["picks"]), saved["filled"],
+                          saved["covers"], saved["gaps"])
 
 
 def load_fill_loss(path: Path, core: np.ndarray) -> FillLoss:
