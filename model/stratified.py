@@ -83,10 +83,11 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf, cover_spacing
         # guess, are not covered for nothing there (on the extra-bytes file at 0.1, 23 of 33 tiles)
         fill, cover = np.empty(0, dtype=np.int64), farthest_cover(tile, planned)
     else:
+        holes = len(hole_cover(tile.xyz, trial, tile.fillable, radius, curve))
         fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase),
-                                         planned, radius, len(hole_cover(tile.xyz, trial, core, radius, curve)))
+                                         planned, radius, holes)
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
-    picks = topped_up(order, core if tile.fill_mask is None else np.flatnonzero(tile.fill_mask), budget, rng)
+    picks = topped_up(order, tile.fillable, budget, rng)
     return Selection.of(tile, picks if len(picks) == budget else topped_up(picks, core, budget, rng))  # twins last
 
 
@@ -122,7 +123,7 @@ def filled_and_covered(tile: Tile, fill_of: Callable[[int], np.ndarray], budget:
         if holes == budget:  # no fill left
             break
         fill = fill_of(budget - holes)
-        rest = tile.core.copy()
+        rest = (tile.core if tile.fill_mask is None else tile.fill_mask).copy()  # a twin is covered with its first
         rest[fill] = False
         cover = hole_cover(tile.xyz, fill, np.flatnonzero(rest), radius, tile.curve)
         if len(cover) <= holes:
