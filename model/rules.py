@@ -129,17 +129,15 @@ HASH_FACTORS = np.array([0x9E3779B97F4A7C15, 0xC2B2AE3D27D4EB4F, 0x165667B19E377
                         dtype=np.uint64)  # odd 64-bit mixing constants (golden ratio, xxHash primes)
 
 
-def position_keys(xyz: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
-    """(n,) uint64 hashes of the (n, d) points' float64 coordinates (and of (n,) integer `labels` where given):
-    equal for exact twins, and for other points only by a collision."""
+def position_keys(xyz: np.ndarray) -> np.ndarray:
+    """(n,) uint64 hashes of the (n, d) points' float64 coordinates: equal for exact twins, and for other points
+    only by a collision."""
     bits = np.ascontiguousarray(xyz, dtype=np.float64).view(np.uint64)
     key = np.zeros(len(bits), dtype=np.uint64)
     for column in range(bits.shape[1]):
         if column >= 3:  # stir between columns, so equal values in two columns cannot cancel
             key *= HASH_FACTORS[3]
         key ^= bits[:, column] * HASH_FACTORS[column % 3]  # integer products wrap: a hash, not a value
-    if labels is not None:
-        key ^= np.asarray(labels).astype(np.uint64) * HASH_FACTORS[3]
     return key
 
 
@@ -154,19 +152,16 @@ def most_twins(xyz: np.ndarray) -> int:
     return int(np.diff(starts).max())
 
 
-def identical_runs(xyz: np.ndarray, labels: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """An (n,) order of the (n, d) points that puts exact twins (the same coordinates, and the same of (n,)
-    integer `labels` where given) side by side, and (n,) bool: where a run of twins starts in that order.
-    Sorted by position_keys (6x faster than np.unique over rows on 100k points), a run starts wherever the
-    row changes, so a hash collision at most splits a run of twins in two."""
-    key = position_keys(xyz, labels)
+def identical_runs(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """An (n,) order of the (n, d) points that puts exact twins (the same coordinates) side by side, and (n,)
+    bool: where a run of twins starts in that order. Sorted by position_keys (6x faster than np.unique over
+    rows on 100k points), a run starts wherever the row changes, so a hash collision at most splits a run of
+    twins in two."""
+    key = position_keys(xyz)
     order = np.argsort(key, kind="stable")
     ordered_key, ordered_xyz = key[order], xyz[order]
     starts = np.ones(len(order), dtype=bool)
     starts[1:] = (ordered_key[1:] != ordered_key[:-1]) | np.any(ordered_xyz[1:] != ordered_xyz[:-1], axis=1)
-    if labels is not None:
-        ordered_labels = np.asarray(labels)[order]
-        starts[1:] |= ordered_labels[1:] != ordered_labels[:-1]
     return order, starts
 
 

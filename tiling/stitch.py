@@ -31,33 +31,6 @@ def band_mask(xyz: np.ndarray, rect: Sequence[float], tolerance: float) -> np.nd
     return inner < tolerance
 
 
-def close_pairs(xyz: np.ndarray, tolerance: float) -> np.ndarray:
-    """Every pair (i, j), i < j, of the (N, 3) points at most `tolerance` apart, shape (P, 2): what scipy's
-    cKDTree.query_pairs returns, with the same rule for a pair exactly at the tolerance (squared distance
-    summed x, y, z, compared with tolerance squared), but from pykdtree's bounded kNN, so a run never
-    imports scipy (0.3 s). Rows whose k-th neighbour is still within reach ask again with twice the k,
-    so a cluster of duplicates costs only its own rows."""
-    points = np.ascontiguousarray(xyz, dtype=np.float64)
-    count = len(points)
-    if count < 2:
-        return np.empty((0, 2), dtype=np.int64)
-    tree = KDTree(points)
-    reach = float(np.nextafter(tolerance, np.inf)) * (1 + 1e-9)  # a margin; the exact rule is applied below
-    rows, k, found = np.arange(count), min(2, count), []
-    while len(rows):
-        neighbours = tree.query(points[rows], k=k, distance_upper_bound=reach)[1].reshape(len(rows), k)
-        complete = (neighbours[:, -1] >= count) | (k == count)
-        first = np.repeat(rows[complete], k)
-        second = neighbours[complete].ravel().astype(np.int64)
-        ordered = (second < count) & (first < second)
-        found.append(np.stack([first[ordered], second[ordered]], axis=1))
-        rows, k = rows[~complete], min(2 * k, count)
-    pairs = np.concatenate(found)
-    offset = points[pairs[:, 0]] - points[pairs[:, 1]]
-    squared = offset[:, 0] * offset[:, 0] + offset[:, 1] * offset[:, 1] + offset[:, 2] * offset[:, 2]
-    return pairs[squared <= tolerance * tolerance]
-
-
 def first_accepted(candidates: int, budget: int, rejected: np.ndarray) -> np.ndarray:
     """The first `budget` candidate ranks that are not rejected; rejected ones fill in only if too few remain."""
     keep = np.ones(candidates, dtype=bool)
@@ -70,42 +43,46 @@ def first_accepted(candidates: int, budget: int, rejected: np.ndarray) -> np.nda
 
 def resolve_seams(bands: Sequence[SeamBand], candidate_counts: np.ndarray, budgets: np.ndarray,
                   tolerance: float) -> dict[int, np.ndarray]:
-    """Ranks each tile must reject so that no two kept points of different tiles are closer than tolerance.
-    Points of one tile at one position are paired as one (identical_groups): a scan with thousands of
-    returns at one spot (a sensor's origin, a duplicated export) made close_pairs list every pair among them,
-    20k duplicates 4 minutes, though pairs within a tile are never a seam's."""
-    bands = [b for b in bands if len(b.ranks)]
-    if not bands or tolerance <= 0:
-        return {}
-    xyz = np.concatenate([b.xyz for b in bands])
-    tile = np.concatenate([np.full(len(b.ranks), b.tile_id) for b in bands])
-    rank = np.concatenate([b.ranks for b in bands])
-    group, first = identical_groups(xyz, tile)
-    pairs = close_pairs(xyz[first], tolerance)
-    pairs = pairs[tile[first[pairs[:, 0]]] != tile[first[pairs[:, 1]]]]
-    # orient each pair from the later tile (which decides) to the earlier one (already decided)
-    later_first = tile[first[pairs[:, 0]]] > tile[first[pairs[:, 1]]]
-    later = np.where(later_first, pairs[:, 0], pairs[:, 1])
-    earlier = np.where(later_first, pairs[:, 1], pairs[:, 0])
-    accepted = np.zeros(len(first), dtype=bool)  # by group: any of its points accepted
+    """Ranks each tile must reject so that no two kept points of different tiles are closer than tolerance:
+    tile by tile in id order, a candidate is rejected where a point an earlier tile accepted lies within
+    tolerance of it (squared distance summed x, y, z, at most tolerance squared: a pair exactly at the
+    tolerance is one, as scipy's query_pairs has it). Each candidate asks for the nearest accepted point of
+    each earlier tile whose band reaches its own, so a dense cluster on a seam costs its own points, not their
+    pairs (listing every pair within tolerance, a 3 mm blob of 100,000 returns on a tile corner took 261 s);
+    a tile's points at one position ask once (identical_groups)."""
+    bands = sorted((b for b in bands if len(b.ranks)), key=lambda b: b.tile_id) if tolerance > 0 else []
+    reach = float(np.nextafter(tolerance, np.inf)) * (1 + 1e-9)  # a margin; the exact rule is applied below
+    lows, highs = np.empty((len(bands), 3)), np.empty((len(bands), 3))  # bounds of the accepted bands so far
+    trees: list[tuple[np.ndarray, KDTree]] = []
     rejections: dict[int, np.ndarray] = {}
-    for tile_id in sorted_distinct(tile):
-        members = np.flatnonzero(tile == tile_id)
+    for band in bands:
+        group, first = identical_groups(band.xyz)
+        spots = np.ascontiguousarray(band.xyz[first], dtype=np.float64)
+        low, high = spots.min(axis=0) - reach, spots.max(axis=0) + reach
         clashing = np.zeros(len(first), dtype=bool)
-        clashing[later[accepted[earlier]]] = True
-        rejected = sorted_distinct(rank[members[clashing[group[members]]]])
-        chosen = first_accepted(int(candidate_counts[tile_id]), int(budgets[tile_id]), rejected)
-        accepted[group[members[np.isin(rank[members], chosen)]]] = True
+        reached = np.all(lows[:len(trees)] <= high, axis=1) & np.all(highs[:len(trees)] >= low, axis=1)
+        for accepted, tree in (trees[i] for i in np.flatnonzero(reached)):
+            _, index = tree.query(spots, k=1, distance_upper_bound=reach)
+            found = np.flatnonzero(index < len(accepted))
+            offset = spots[found] - accepted[index[found]]
+            squared = offset[:, 0] * offset[:, 0] + offset[:, 1] * offset[:, 1] + offset[:, 2] * offset[:, 2]
+            clashing[found[squared <= tolerance * tolerance]] = True
+        rejected = sorted_distinct(band.ranks[clashing[group]])
+        chosen = first_accepted(int(candidate_counts[band.tile_id]), int(budgets[band.tile_id]), rejected)
+        accepted = spots[sorted_distinct(group[np.isin(band.ranks, chosen)])]
+        if len(accepted):
+            lows[len(trees)], highs[len(trees)] = accepted.min(axis=0), accepted.max(axis=0)
+            trees.append((accepted, KDTree(accepted)))
         if len(rejected):
-            rejections[int(tile_id)] = rejected
+            rejections[int(band.tile_id)] = rejected
     return rejections
 
 
-def identical_groups(xyz: np.ndarray, tile: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(n,) each point's group among the (n, 3) points `xyz` of (n,) tiles `tile`, and (groups,) each group's
-    first point: a group's points share their tile and coordinates (model.rules.identical_runs: a hash
-    collision at most splits a group, which only costs a few more pairs)."""
-    order, starts = identical_runs(xyz, tile)
+def identical_groups(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n,) each point's group among the (n, 3) points, and (groups,) each group's first point: a group's points
+    share their coordinates (model.rules.identical_runs: a hash collision at most splits a group, which only
+    costs a query more)."""
+    order, starts = identical_runs(xyz)
     group = np.empty(len(order), dtype=np.int64)
     group[order] = np.cumsum(starts) - 1
     return group, order[starts]
