@@ -117,7 +117,7 @@ def sort_crowded_cells(client: Client | Executor, crowded: np.ndarray, pieces: l
 def crowded_cells_note(plan: TilePlan, max_points: int, tile_size_m: float) -> str | None:
     """Say so when tiles hold more than max_points: a crowded cell is split down to sub-cells (tile size /
     512) and no further, so such a tile's task needs memory for all of its points; the tile size that
-    would split them, were the points spread evenly over the sub-cell."""
+    would split them, were the points spread evenly over the sub-cell (exact twins it never splits)."""
     crowded = [tile.count for tile in plan.tiles if tile.count > max_points]
     if not crowded:
         return None
@@ -125,7 +125,8 @@ def crowded_cells_note(plan: TilePlan, max_points: int, tile_size_m: float) -> s
     smaller = tile_size_m * math.sqrt(max_points / most)
     return (f"{len(crowded)} sub-cell(s) of tile size / {CELLS_PER_TILE * SUB_CELLS} hold more than --max-tile-points "
             f"({max_points:,}) points, up to {most:,}: each is one tile and its task needs memory for all of "
-            f"them; a --tile-size of about {smaller:.2g} m or less would split them")
+            f"them; a --tile-size of about {smaller:.2g} m or less would split them, unless they share one "
+            f"position (a scanner's no-return spot), which no tile size splits")
 
 
 COVERAGE_LEVELS = 2.0 ** np.arange(-8, 9)  # voxel sizes, relative to the 2-D spacing estimate: 2**8 either side,
