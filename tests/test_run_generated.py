@@ -542,6 +542,19 @@ def test_a_sub_cell_over_the_tile_limit_is_named_with_the_tile_size_that_splits_
     assert "--tile-size of about 5.7 m or less" in crowded[0]  # 8 m * sqrt(2,000 / 4,000)
 
 
+@pytest.mark.parametrize("method", ["learned", "fps"])
+def test_a_scan_inside_one_crowded_cell_runs(tmp_path, method):
+    """An object scanned closely (4,000 points within half a metre, over --max-tile-points in one cell): every
+    occupied cell is split, which once crashed the plan's per-tile sums (numpy's bincount of no whole cell is
+    int64, and the sub-cells' float sums could not be added to it)."""
+    rng = np.random.default_rng(13)
+    path = tmp_path / "object.las"
+    write_flat_scene(path, rng.uniform(0, 0.5, size=(4_000, 2)), 0.05, rng)
+    report = pipeline.run(path, tmp_path / "out.laz", ratio=0.1, method=method, tile_size=8.0,
+                          max_tile_points=1_000, workers=1)
+    assert report.output_points == len(laspy.read(tmp_path / "out.laz").points) == 400 and report.tiles > 1
+
+
 def sparse_field_scan(path: Path) -> Path:
     """20,000 points over 64 x 64 m with a dense 8 x 8 m patch of 10,000: with 8 m tiles, 64 nominal
     tiles of about 300 points and one of 10,000."""

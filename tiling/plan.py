@@ -147,7 +147,8 @@ class TilePlan:
         """(tiles,) sums of a count given per occupied cell (occupied,) and, for split cells, per sub-cell
         (k, SUB_CELLS, SUB_CELLS): the tiles' share of it."""
         whole = self.cell_tiles >= 0
-        totals = np.bincount(self.cell_tiles[whole], weights=np.asarray(per_cell)[whole], minlength=len(self.tiles))
+        totals = np.bincount(self.cell_tiles[whole], weights=np.asarray(per_cell)[whole],
+                             minlength=len(self.tiles)).astype(np.float64)  # int64 where no cell is whole
         if per_sub_cell is not None and len(self.split_cells):
             named = self.sub_tiles >= 0
             totals += np.bincount(self.sub_tiles[named], weights=per_sub_cell[named], minlength=len(self.tiles))
