@@ -40,7 +40,7 @@ from model.rules import morton_order  # noqa: E402
 from model.metrics import nearest, quality  # noqa: E402
 from model.rules import kept_count  # noqa: E402
 from model.selection import FillLoss  # noqa: E402
-from model.stratified import fill_weights, filled_and_covered, hole_cover, weighted_picks  # noqa: E402
+from model.stratified import filled_and_covered, hole_cover, keep_weights, no_loss, weighted_picks  # noqa: E402
 
 RADII = (1.0, 1.25, 1.5, 2.0, 3.0, np.inf)  # hole radius over FPS's p99
 SCALES = (0.0, 1.0, 4.0)  # detail scale s of the keep weights 1 + s x relative loss
@@ -56,7 +56,7 @@ def poisson_picks(weights: np.ndarray, count: int, seed: int) -> np.ndarray:
 def family_picks(xyz: np.ndarray, loss: FillLoss, scale: float, radius: float, count: int, sampler: str) -> np.ndarray:
     """The default's fill-and-cover of the whole scan, with its fill drawn by `sampler`."""
     tile = Tile(xyz, np.ones(len(xyz), dtype=bool), np.zeros(3), seed=0)
-    weights = fill_weights(loss, scale) if scale > 0 else None
+    weights = keep_weights(tile, loss if scale > 0 else no_loss(tile, count), scale)  # twins weigh 0, as in a run
     if sampler == "systematic":
         curve = morton_order(xyz)
         curve_weights = None if weights is None else weights[curve]

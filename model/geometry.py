@@ -40,27 +40,31 @@ class PointTree:
     """A kd-tree of (n, 3) float64 points for k-nearest queries, holding at most k points at any one position.
 
     pykdtree's search for 4 or more neighbours of one of c exact twins visits all c of them (50,000 twins:
-    0.3 ms a query, so a tile holding a scanner's no-return spot of 100,000 returns spent minutes in its
-    survey). A list of k nearest holds at most k twins of a position whatever the tree holds, so the distances
-    and positions listed are those of the whole cloud; only which twin stands for a position may change,
-    and twins' features are the same. Below k + 1 twins a position is held whole: the tree is then the
-    plain one (a hash sort checks it: 0.2 ms on a 22k-point tile, whose tree takes 2.8 ms).
+    0.3 ms a query; a 2M-point scan whose no-return spot held 400,000 returns took minutes). A list of k
+    nearest holds at most k twins of a position whatever the tree holds, so the distances listed are those
+    of the whole cloud; which twin stands for a position may change (twins' features are the same), and
+    where two positions tie at the k-th distance, which of them is listed (a smaller tree breaks ties its own
+    way). Where no position has more than k twins the tree is the plain one, so such clouds' lists are
+    unchanged (a hash sort checks it: 0.2 ms on a 22k-point tile, whose tree takes 2.8 ms).
     """
 
     tree: KDTree
     held: np.ndarray | None  # (m,) indices of the points the tree holds, ascending; None: every point
+    k: int  # the most neighbours a query may ask for
 
     @classmethod
     def of(cls, xyz: np.ndarray, k: int) -> PointTree:
         """The tree of `xyz` (n, 3) float64 for queries of up to `k` neighbours."""
         if most_twins(xyz) <= k:
-            return cls(KDTree(xyz), None)
+            return cls(KDTree(xyz), None, k)
         held = capped_twins(xyz, k)
-        return cls(KDTree(np.ascontiguousarray(xyz[held])), held)
+        return cls(KDTree(np.ascontiguousarray(xyz[held])), held, k)
 
     def query(self, points: np.ndarray, k: int, squared: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """Distances (squared unless `squared` is False) and indices into the tree's points of the k nearest
         to each of (m, 3) float64 `points`, nearest first: (m, k) each, (m,) for k = 1."""
+        if k > self.k:
+            raise ValueError(f"{k} neighbours asked of a tree built for {self.k}")
         distance, index = self.tree.query(points, k, sqr_dists=squared)
         return distance, index if self.held is None else self.held[index]
 

@@ -155,8 +155,8 @@ def most_twins(xyz: np.ndarray) -> int:
 def identical_runs(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """An (n,) order of the (n, d) points that puts exact twins (the same coordinates) side by side, and (n,)
     bool: where a run of twins starts in that order. Sorted by position_keys (6x faster than np.unique over
-    rows on 100k points), a run starts wherever the row changes, so a hash collision at most splits a run of
-    twins in two."""
+    rows on 100k points), a run starts wherever the row changes, so a hash collision can split a position's
+    twins into several runs (never join two positions)."""
     key = position_keys(xyz)
     order = np.argsort(key, kind="stable")
     ordered_key, ordered_xyz = key[order], xyz[order]

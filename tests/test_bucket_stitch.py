@@ -306,3 +306,18 @@ def test_stable_order_is_numpys_stable_argsort_for_narrow_and_wide_keys():
         keys = rng.integers(5_000, 5_000 + span, 20_000).astype(np.int64)
         np.testing.assert_array_equal(stable_order(keys), np.argsort(keys, kind="stable"))
     assert len(stable_order(np.empty(0, dtype=np.int64))) == 0
+
+
+def test_a_tiles_band_given_in_parts_is_one_band():
+    """Bands of one tile given separately are joined (resolve_seams' callers may hand a tile's band in pieces):
+    the rejections are those of the whole band."""
+    rng = np.random.default_rng(10)
+    tiles = [np.column_stack([rng.uniform(9.98, 10.0, 400), rng.uniform(0, 1, 400), np.zeros(400)]),
+             np.column_stack([rng.uniform(10.0, 10.02, 400), rng.uniform(0, 1, 400), np.zeros(400)])]
+    counts, budgets = np.array([400, 400]), np.array([300, 300])
+    whole = resolve_seams([SeamBand(t, np.arange(400), p) for t, p in enumerate(tiles)], counts, budgets, 0.01)
+    parts = [SeamBand(1, np.arange(200, 400), tiles[1][200:]), SeamBand(0, np.arange(400), tiles[0]),
+             SeamBand(1, np.arange(200), tiles[1][:200])]
+    split = resolve_seams(parts, counts, budgets, 0.01)
+    assert len(whole[1]) > 50 and whole.keys() == split.keys()
+    np.testing.assert_array_equal(np.sort(split[1]), whole[1])

@@ -217,10 +217,12 @@ def test_a_tree_holds_k_twins_of_a_position_and_lists_the_whole_clouds_neighbour
     assert len(held) == len(xyz) - 2_001 + 16 and (np.diff(held) > 0).all()
     assert PointTree.of(xyz, 16).held is not None and PointTree.of(wavy(), 16).held is None
     capped = neighbours(PointTree.of(xyz, 16), xyz, np.arange(len(xyz)), 16)
-    plain = neighbours(PointTree(KDTree(xyz), None), xyz, np.arange(len(xyz)), 16)
+    plain = neighbours(PointTree(KDTree(xyz), None, 16), xyz, np.arange(len(xyz)), 16)
     np.testing.assert_array_equal(capped.sq_dist, plain.sq_dist)
     np.testing.assert_array_equal(xyz[capped.indices], xyz[plain.indices])
     np.testing.assert_array_equal(capped.indices[:, 0], np.arange(len(xyz)))
+    with pytest.raises(ValueError, match="17 neighbours asked of a tree built for 16"):
+        PointTree.of(xyz, 16).query(xyz, 17)  # past its k, a capped tree would lose twins at distance 0
     for k in (1, 2):  # nearest and nearest-other searches
         distance, index = PointTree.of(xyz, k).query(xyz, k, squared=False)
         expected, _ = KDTree(xyz).query(xyz, k)
@@ -233,7 +235,7 @@ def test_features_of_a_spot_of_twins_are_those_of_a_tree_holding_every_twin():
     distance 0), and every other point's neighbours lie at the same positions."""
     xyz = spot_of_twins()
     features = point_features(xyz)
-    nbrs = neighbours(PointTree(KDTree(xyz), None), xyz, np.arange(len(xyz)), 16)
+    nbrs = neighbours(PointTree(KDTree(xyz), None, 16), xyz, np.arange(len(xyz)), 16)
     kappa = curvature(local_eigenvalues(xyz, nbrs))
     np.testing.assert_array_equal(features.kappa, kappa)
     np.testing.assert_array_equal(features.mean_curvature, mean_curvature(kappa, nbrs, bandwidth(nbrs)))

@@ -257,9 +257,9 @@ def saliency_weights(counts: np.ndarray, levels: np.ndarray, loss_sums: np.ndarr
     one pass over the whole scan: a point's weight is 1 + strength x loss / (the scan's mean loss), and a
     tile holding it gets the sum of its points' weights.
 
-    counts: (tiles,) core points; levels: (tiles,) mean absolute loss per core point; loss_sums: (tiles,)
-    sums of the relative loss (loss / level) over the core. Scales are strength x level / scan mean (0 if
-    no loss).
+    counts: (tiles,) core positions (model.selection.Tile.positions: exact twins count once, as a fill weighs
+    them); levels: (tiles,) mean absolute loss per core point; loss_sums: (tiles,) sums of the relative loss
+    (loss / level) over those positions. Scales are strength x level / scan mean (0 if no loss).
     """
     counts = np.asarray(counts, dtype=np.float64)
     levels = np.asarray(levels, dtype=np.float64)

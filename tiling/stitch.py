@@ -50,7 +50,7 @@ def resolve_seams(bands: Sequence[SeamBand], candidate_counts: np.ndarray, budge
     each earlier tile whose band reaches its own, so a dense cluster on a seam costs its own points, not their
     pairs (listing every pair within tolerance, a 3 mm blob of 100,000 returns on a tile corner took 261 s);
     a tile's points at one position ask once (identical_groups)."""
-    bands = sorted((b for b in bands if len(b.ranks)), key=lambda b: b.tile_id) if tolerance > 0 else []
+    bands = tile_bands(bands) if tolerance > 0 else []
     reach = float(np.nextafter(tolerance, np.inf)) * (1 + 1e-9)  # a margin; the exact rule is applied below
     lows, highs = np.empty((len(bands), 3)), np.empty((len(bands), 3))  # bounds of the accepted bands so far
     trees: list[tuple[np.ndarray, KDTree]] = []
@@ -76,6 +76,17 @@ def resolve_seams(bands: Sequence[SeamBand], candidate_counts: np.ndarray, budge
         if len(rejected):
             rejections[int(band.tile_id)] = rejected
     return rejections
+
+
+def tile_bands(bands: Sequence[SeamBand]) -> list[SeamBand]:
+    """The non-empty bands in tile order, one per tile (a tile's bands joined)."""
+    by_tile: dict[int, list[SeamBand]] = {}
+    for band in bands:
+        if len(band.ranks):
+            by_tile.setdefault(int(band.tile_id), []).append(band)
+    return [parts[0] if len(parts) == 1 else SeamBand(tile_id, np.concatenate([b.ranks for b in parts]),
+                                                      np.concatenate([b.xyz for b in parts]))
+            for tile_id, parts in sorted(by_tile.items())]
 
 
 def identical_groups(xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
