@@ -98,7 +98,7 @@ class Tile:
         """How many core points a fill may pick (fill_mask): the tile's core but for exact twins."""
         return self.core_count if self.fill_mask is None else int(self.fill_mask.sum())
 
-    @property
+    @cached_property
     def fillable(self) -> np.ndarray:
         """(positions,) ascending indices of the core points a fill or a hole cover may pick (fill_mask)."""
         return np.flatnonzero(self.core if self.fill_mask is None else self.fill_mask)

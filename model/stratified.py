@@ -87,8 +87,7 @@ def stratified_selection(tile: Tile, budget: int, loss_of: LossOf, cover_spacing
         fill, cover = filled_and_covered(tile, lambda count: weighted_picks(curve, curve_weights, count, phase),
                                          planned, radius, holes)
     order = interleaved(fill[radical_inverse_order(len(fill))], cover)
-    picks = topped_up(order, tile.fillable, budget, rng)
-    return Selection.of(tile, picks if len(picks) == budget else topped_up(picks, core, budget, rng))  # twins last
+    return Selection.of(tile, topped_up(topped_up(order, tile.fillable, budget, rng), core, budget, rng))  # twins last
 
 
 def at_cover_floor(budget: int | np.ndarray, cover_count: int | np.ndarray) -> bool | np.ndarray:

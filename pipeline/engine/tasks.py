@@ -246,8 +246,8 @@ def survey_tile(job: SurveyJob, plan: TilePlan) -> TileSurvey:
     fill = (survey_fill(tile, core_xyz, budget, sizes, job.simplifier) if isinstance(job.simplifier, Fill)
             else FillSurvey.empty(len(sizes), np.empty(0, dtype=np.int64)))
     core_loss = None if fill.loss.relative is None else fill.loss.relative[tile.core]
-    fillable = core_loss if core_loss is None or tile.fill_mask is None else core_loss[tile.fill_mask[tile.core]]
-    loss_sum = float(fillable.sum()) if fillable is not None else 0.0
+    positions_loss = core_loss if core_loss is None or tile.fill_mask is None else core_loss[tile.fill_mask[tile.core]]
+    loss_sum = float(positions_loss.sum()) if positions_loss is not None else 0.0
     survey = TileSurvey(occupied, tile.core_count, tile.positions, fill.loss.level, loss_sum, fill.spacings, budget,
                         fill.filled, fill.covers, fill.gaps)
     arrays = {} if core_loss is None else {"relative": core_loss.astype(np.float32)}
