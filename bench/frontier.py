@@ -164,7 +164,16 @@ def main() -> None:
         draw(scan_rows, args.out / "frontier" / f"frontier-{Path(scan).stem}-{args.ratio:g}.png")
         rows += scan_rows
     (args.out / "frontier.json").write_text(json.dumps(rows, indent=1, default=float))
-    (args.out / "frontier.md").write_text(markdown(rows))
+    page = args.out / "frontier.md"
+    page.write_text(markdown(rows) + later_sections(page))
+
+
+def later_sections(page: Path) -> str:
+    """What follows the table in an existing frontier.md (its "## Stop ..." sections, written by hand from runs of
+    this script and others), kept when the table is made again; empty for a new page."""
+    text = page.read_text() if page.exists() else ""
+    start = text.find("\n## ")
+    return "" if start < 0 else text[start:]
 
 
 if __name__ == "__main__":
