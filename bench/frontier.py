@@ -22,7 +22,9 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 from matplotlib.figure import Figure
@@ -35,8 +37,7 @@ from quality import DEFAULT_DATA, load_scan, save_small, xyz_of  # noqa: E402
 from model import Tile  # noqa: E402
 from model.baselines import fps_simplify, random_simplify  # noqa: E402
 from model.detail import predicted_fill_loss  # noqa: E402
-from model.geometry import point_features  # noqa: E402
-from model.rules import morton_order  # noqa: E402
+from model.geometry import PointFeatures, point_features  # noqa: E402
 from model.metrics import nearest, quality  # noqa: E402
 from model.rules import kept_count  # noqa: E402
 from model.selection import FillLoss  # noqa: E402
@@ -53,22 +54,26 @@ def poisson_picks(weights: np.ndarray, count: int, seed: int) -> np.ndarray:
     return np.argsort(-keys, kind="stable")[:max(count, 0)]
 
 
-def family_picks(xyz: np.ndarray, loss: FillLoss, scale: float, radius: float, count: int, sampler: str) -> np.ndarray:
-    """The default's fill-and-cover of the whole scan, with its fill drawn by `sampler`."""
-    tile = Tile(xyz, np.ones(len(xyz), dtype=bool), np.zeros(3), seed=0)
+def family_picks(tile: Tile, loss: FillLoss, scale: float, radius: float, count: int, sampler: str) -> np.ndarray:
+    """The default's fill-and-cover of the whole scan (`tile`), with its fill drawn by `sampler`."""
     weights = keep_weights(tile, loss if scale > 0 else no_loss(tile, count), scale)  # twins weigh 0, as in a run
     if sampler == "systematic":
-        curve = morton_order(xyz)
+        curve = tile.curve
         curve_weights = None if weights is None else weights[curve]
         fill_of = lambda n: weighted_picks(curve, curve_weights, n, 0.5)  # noqa: E731
     else:
-        chances = np.ones(len(xyz)) if weights is None else weights
+        chances = np.ones(len(tile.xyz)) if weights is None else weights
         fill_of = lambda n: poisson_picks(chances, n, 0)  # noqa: E731
+    return covered(tile, fill_of, count, radius)
+
+
+def covered(tile: Tile, fill_of: Callable[[int], np.ndarray], count: int, radius: float) -> np.ndarray:
+    """`count` picks of the whole scan (`tile`): the fill `fill_of` draws and the default's hole cover at `radius`
+    (the fill alone where it is infinite)."""
     if not np.isfinite(radius):
         return fill_of(count)
-    holes = len(hole_cover(xyz, fill_of(count), np.arange(len(xyz)), radius))
-    fill, cover = filled_and_covered(tile, fill_of, count, radius, holes)
-    return np.concatenate([fill, cover])
+    holes = len(hole_cover(tile.xyz, fill_of(count), np.arange(len(tile.xyz)), radius))
+    return np.concatenate(filled_and_covered(tile, fill_of, count, radius, holes))
 
 
 def scored(xyz: np.ndarray, kept: np.ndarray, features) -> dict[str, float]:
@@ -78,29 +83,56 @@ def scored(xyz: np.ndarray, kept: np.ndarray, features) -> dict[str, float]:
             "p99": float(np.sqrt(np.quantile(nearest(xyz[kept], xyz).sq_dist, 0.99)))}
 
 
-def sweep(scan: str, ratio: float, data: Path, work: Path) -> list[dict]:
-    """Every family point of one scan, with the baselines, as ratios to random (CE) and FPS (CD, p99)."""
-    path, las = load_scan(scan, data, work)
+@dataclass(frozen=True)
+class OneTile:
+    """A scan centred as one tile, with what its frontier points are scored against: its features, the count
+    at the ratio, random's and FPS's scores there (scored), and the default's predicted loss."""
+
+    tile: Tile
+    features: PointFeatures
+    count: int
+    random: dict[str, float]
+    fps: dict[str, float]
+    loss: FillLoss
+
+    @property
+    def xyz(self) -> np.ndarray:
+        return self.tile.xyz
+
+    def score(self, kept: np.ndarray) -> dict[str, float]:
+        """CE, CD and p99 of the kept points (indices into the scan)."""
+        return scored(self.xyz, kept, self.features)
+
+    def row(self, scan: str, ratio: float, family: str, radius: float, score: dict[str, float]) -> dict:
+        """A frontier point: CE over random's, p99 and Chamfer over FPS's."""
+        return {"scan": scan, "ratio": ratio, "family": family, "radius": radius,
+                "ce": score["ce"] / self.random["ce"], "p99": score["p99"] / self.fps["p99"],
+                "cd": score["cd"] / self.fps["cd"]}
+
+
+def one_tile(scan: str, ratio: float, data: Path, work: Path, max_points: int | None = None) -> OneTile:
+    """The scan as one tile (its `max_points` nearest the middle in x, if given) and its baselines' scores."""
+    _, las = load_scan(scan, data, work)
     xyz = xyz_of(las)
     xyz -= xyz.mean(axis=0)
+    if max_points is not None and len(xyz) > max_points:
+        xyz = xyz[np.argsort(np.abs(xyz[:, 0]), kind="stable")[:max_points]]
     features = point_features(xyz)
     count = kept_count(ratio, len(xyz))
-    whole = Tile(xyz, np.ones(len(xyz), dtype=bool), np.zeros(3), seed=0)
-    random_score = scored(xyz, random_simplify(whole, count).indices, features)
-    fps_score = scored(xyz, fps_simplify(whole, count).indices, features)
-    loss = predicted_fill_loss(whole, count)
+    tile = Tile(xyz, np.ones(len(xyz), dtype=bool), np.zeros(3), seed=0)
+    return OneTile(tile, features, count, scored(xyz, random_simplify(tile, count).indices, features),
+                   scored(xyz, fps_simplify(tile, count).indices, features), predicted_fill_loss(tile, count))
 
-    def row(family: str, radius: float, score: dict[str, float]) -> dict:
-        return {"scan": scan, "ratio": ratio, "family": family, "radius": radius,
-                "ce": score["ce"] / random_score["ce"], "p99": score["p99"] / fps_score["p99"],
-                "cd": score["cd"] / fps_score["cd"]}
 
-    rows = [row("random", np.inf, random_score), row("fps", 0.0, fps_score)]
+def sweep(scan: str, ratio: float, data: Path, work: Path) -> list[dict]:
+    """Every family point of one scan, with the baselines, as ratios to random (CE) and FPS (CD, p99)."""
+    scene = one_tile(scan, ratio, data, work)
+    rows = [scene.row(scan, ratio, "random", np.inf, scene.random), scene.row(scan, ratio, "fps", 0.0, scene.fps)]
     for sampler in ("systematic", "poisson"):
         for scale in SCALES:
             for multiple in RADII:
-                kept = family_picks(xyz, loss, scale, multiple * fps_score["p99"], count, sampler)
-                rows.append(row(f"{sampler} s={scale:g}", multiple, scored(xyz, kept, features)))
+                kept = family_picks(scene.tile, scene.loss, scale, multiple * scene.fps["p99"], scene.count, sampler)
+                rows.append(scene.row(scan, ratio, f"{sampler} s={scale:g}", multiple, scene.score(kept)))
                 print(format_row(rows[-1]), flush=True)
     return rows
 

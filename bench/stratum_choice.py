@@ -23,16 +23,12 @@ import numpy as np
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent))
 
-from frontier import scored  # noqa: E402
-from quality import DEFAULT_DATA, load_scan, xyz_of  # noqa: E402
+from frontier import covered, one_tile  # noqa: E402
+from quality import DEFAULT_DATA  # noqa: E402
 
-from model import Tile  # noqa: E402
-from model.baselines import fps_simplify, random_simplify  # noqa: E402
 from model.detail import predicted_fill_loss  # noqa: E402
 from model.geometry import point_features  # noqa: E402
-from model.rules import kept_count, morton_order  # noqa: E402
-from model.stratified import (curve_of, filled_and_covered, hole_cover, keep_probabilities, keep_weights,  # noqa: E402
-                              weighted_picks)
+from model.stratified import curve_of, keep_probabilities, keep_weights, weighted_picks  # noqa: E402
 
 MAX_POINTS = 600_000  # a scan is cut to its middle this many points (the metrics' kNN over millions is slow here)
 Chooser = Callable[[np.ndarray, np.ndarray, np.ndarray | None, int], np.ndarray]
@@ -48,9 +44,9 @@ def strata(weights: np.ndarray | None, count: int, points: int) -> tuple[np.ndar
 
 def best_of_strata(curve: np.ndarray, stratum: np.ndarray, score: np.ndarray) -> np.ndarray:
     """The curve's point of lowest finite `score` (curve order) in each stratum (strata ascend along the curve)."""
-    starts = np.flatnonzero(np.concatenate([[True], stratum[1:] != stratum[:-1]]))
-    run = np.cumsum(np.concatenate([[True], stratum[1:] != stratum[:-1]])) - 1
-    best = np.minimum.reduceat(score, starts)
+    opens = np.concatenate([[True], stratum[1:] != stratum[:-1]])
+    run = np.cumsum(opens) - 1
+    best = np.minimum.reduceat(score, np.flatnonzero(opens))
     at = np.flatnonzero((score == best[run]) & np.isfinite(score))
     return curve[at[np.concatenate([[True], run[at][1:] != run[at][:-1]])]]
 
@@ -81,26 +77,16 @@ def choosers(kappa: np.ndarray) -> dict[str, Chooser]:
 
 def frontier_rows(scan: str, ratio: float, radii: list[float], data: Path, work: Path) -> None:
     """Prints a row per chooser and radius: CE over random's, p99 and Chamfer over FPS's, the scan as one tile."""
-    _, las = load_scan(scan, data, work)
-    xyz = xyz_of(las)
-    xyz -= xyz.mean(axis=0)
-    if len(xyz) > MAX_POINTS:
-        xyz = xyz[np.argsort(np.abs(xyz[:, 0]), kind="stable")[:MAX_POINTS]]
-    features = point_features(xyz)
-    tile = Tile(xyz, np.ones(len(xyz), dtype=bool), np.zeros(3), seed=0)
-    count = kept_count(ratio, len(xyz))
-    random_score = scored(xyz, random_simplify(tile, count).indices, features)
-    fps_score = scored(xyz, fps_simplify(tile, count).indices, features)
-    curve = morton_order(xyz)
-    weights = curve_of(keep_weights(tile, predicted_fill_loss(tile, count), 1.0), curve)
-    for name, choose in choosers(features.kappa).items():
+    scene = one_tile(scan, ratio, data, work, MAX_POINTS)
+    curve = scene.tile.curve
+    weights = curve_of(keep_weights(scene.tile, scene.loss, 1.0), curve)
+    for name, choose in choosers(scene.features.kappa).items():
         for multiple in radii:
-            radius = multiple * fps_score["p99"]
-            fill_of = lambda n: choose(xyz, curve, weights, n)  # noqa: E731
-            holes = len(hole_cover(xyz, fill_of(count), np.arange(len(xyz)), radius))
-            score = scored(xyz, np.concatenate(filled_and_covered(tile, fill_of, count, radius, holes)), features)
-            print(f"| {scan} | {ratio:g} | {name} | {multiple:g} | {score['ce'] / random_score['ce']:.3f} | "
-                  f"{score['p99'] / fps_score['p99']:.3f} | {score['cd'] / fps_score['cd']:.3f} |", flush=True)
+            kept = covered(scene.tile, lambda n: choose(scene.xyz, curve, weights, n), scene.count,
+                           multiple * scene.fps["p99"])
+            row = scene.row(scan, ratio, name, multiple, scene.score(kept))
+            print(f"| {scan} | {ratio:g} | {name} | {multiple:g} | {row['ce']:.3f} | {row['p99']:.3f} | "
+                  f"{row['cd']:.3f} |", flush=True)
 
 
 def crease_rows() -> None:

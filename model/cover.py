@@ -14,6 +14,7 @@ import numpy as np
 
 from model.baselines import fps_order
 from model.geometry import PointTree
+from model.rules import most_twins
 
 EARLIER_NEIGHBOURS = 8  # nearest picks of its own block searched for a pick's nearest earlier one (16 gave the
 # same radii on a bcts tile, 12 % slower)
@@ -35,15 +36,16 @@ def insertion_radii(points: np.ndarray, picks: np.ndarray) -> np.ndarray:
     block but not among those (rare), the value is an upper bound, which only ever asks for more picks. Picks
     past a tile's distinct points are exact twins: a block's tree holds at most EARLIER_NEIGHBOURS of them at
     a position (model.geometry.PointTree), the earliest, so a later twin finds an earlier one at 0; the trees of
-    earlier picks hold one."""
+    earlier picks hold one. Picks at distinct positions (the usual case) are checked once, not block by block."""
     xyz = np.ascontiguousarray(points[picks], dtype=np.float64)
+    distinct = most_twins(xyz) <= 1
     gaps = np.full(len(picks), np.inf)
     first = 1
     while first < len(picks):
         block = xyz[first:min(2 * first, len(picks))]
-        before, _ = PointTree.of(xyz[:first], 1).query(block, 1, squared=False)
+        before, _ = PointTree.of(xyz[:first], 1, distinct).query(block, 1, squared=False)
         k = min(EARLIER_NEIGHBOURS, len(block))
-        distance, index = PointTree.of(block, k).query(block, k, squared=False)
+        distance, index = PointTree.of(block, k, distinct).query(block, k, squared=False)
         earlier = index.reshape(len(block), k) < np.arange(len(block))[:, None]
         within = np.where(earlier, distance.reshape(len(block), k), np.inf).min(axis=1)
         gaps[first:first + len(block)] = np.minimum(before.reshape(-1), within)

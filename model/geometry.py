@@ -53,9 +53,10 @@ class PointTree:
     k: int  # the most neighbours a query may ask for
 
     @classmethod
-    def of(cls, xyz: np.ndarray, k: int) -> PointTree:
-        """The tree of `xyz` (n, 3) float64 for queries of up to `k` neighbours."""
-        if most_twins(xyz) <= k:
+    def of(cls, xyz: np.ndarray, k: int, distinct: bool = False) -> PointTree:
+        """The tree of `xyz` (n, 3) float64 for queries of up to `k` neighbours; `distinct`: the caller knows no
+        two of the points share a position (a part of points it checked), so they are not checked again."""
+        if distinct or most_twins(xyz) <= k:
             return cls(KDTree(xyz), None, k)
         held = capped_twins(xyz, k)
         return cls(KDTree(np.ascontiguousarray(xyz[held])), held, k)

@@ -87,10 +87,11 @@ class Tile:
         scanner's no-return spot of 400,000 returns kept 18,435 of them in a 2M-point scan's default output
         at 0.1 (bench/twins.py), 9 % of the count."""
         core = np.flatnonzero(self.core)
-        if most_twins(self.xyz[core]) <= 1:
+        core_xyz = self.xyz[core]
+        if most_twins(core_xyz) <= 1:
             return None
         mask = np.zeros(len(self.xyz), dtype=bool)
-        mask[core[capped_twins(self.xyz[core], 1)]] = True
+        mask[core[capped_twins(core_xyz, 1)]] = True
         return mask
 
     @property
