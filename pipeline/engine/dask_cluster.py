@@ -104,14 +104,14 @@ def probe_scheduler(scheduler: str, timeout_s: float) -> None:
         raise PipelineError(f"{scheduler}: the service there does not speak Dask's protocol (not a Dask scheduler)")
 
 
-
-
 def quiet_dask_logs() -> None:
     """Keep Dask's own logs to real errors: a failed task is reported once, by us, as one line."""
     tornado_errors = logging.getLogger("tornado.application")
     if not any(isinstance(each, SyncCancelRace) for each in tornado_errors.filters):
         tornado_errors.addFilter(SyncCancelRace())
     logging.getLogger("distributed").setLevel(logging.ERROR)
+    for name in ("distributed.client", "distributed.gc"):  # Dask's config sets these to WARNING by name, so the
+        logging.getLogger(name).setLevel(logging.ERROR)     # parent's level does not reach them ("Couldn't gather")
     logging.getLogger("distributed.worker").setLevel(logging.CRITICAL)
     logging.getLogger("distributed.scheduler").setLevel(logging.CRITICAL)  # "N workers died running task X": map_tasks says it
 
