@@ -6,6 +6,8 @@ call, so Dask workers importing `pipeline.engine.tasks` stay light.
 """
 from __future__ import annotations
 
+__version__ = "0.3.13"  # the one place it is set: pyproject.toml reads it, outputs and work folders record it
+
 import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence

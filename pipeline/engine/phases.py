@@ -5,7 +5,6 @@ from __future__ import annotations
 import math
 from concurrent.futures import Executor
 from dataclasses import dataclass, replace
-from importlib.metadata import version
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
 
@@ -16,6 +15,7 @@ from model.methods import Fill
 from model.rules import kept_count
 from model.selection import VoxelCounts
 from model.stratified import at_cover_floor
+from pipeline import __version__
 from pipeline.config import RunConfig, parse_size
 from pipeline.engine.classes import ClassRule
 from pipeline.engine.execute import map_tasks
@@ -298,7 +298,7 @@ def stitch_outputs(scan: Scan, outputs: list[Path], plan: TilePlan, results: dic
     for path, ratio in zip(outputs, config.levels or (config.ratio,)):
         level = nested_budgets(budgets, kept_count(ratio, thinned))
         meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], ratio, config.method,
-                          version("lidar-simplify"), settings, config.simplifier.trained_weights())
+                          __version__, settings, config.simplifier.trained_weights())
         with progress.phase(f"write {path.name}", len(results), unit="tile") as phase:
             parts = counted(level_parts(plan, results, budgets, level, rejections, scan.scales,
                                                 scan.offsets), phase,

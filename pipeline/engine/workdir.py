@@ -11,13 +11,13 @@ import hashlib
 import json
 import shutil
 from dataclasses import asdict, dataclass
-from importlib.metadata import version
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from model.registry import changed_parameters
+from pipeline import __version__
 from pipeline.config import RunConfig
 from pipeline.io.atomic import atomic_output
 
@@ -40,7 +40,7 @@ def run_key(inputs: Sequence[Path], config: RunConfig) -> str:
     of the method (read from its fields, so none can be left out) and the version."""
     settings = {**output_settings(config), "method_parameters": config.simplifier.parameters()}
     files = [(str(path.resolve()), path.stat().st_size, path.stat().st_mtime_ns) for path in inputs]
-    text = json.dumps({"inputs": files, "settings": settings, "version": version("lidar-simplify")}, sort_keys=True)
+    text = json.dumps({"inputs": files, "settings": settings, "version": __version__}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 

@@ -7,12 +7,12 @@ import datetime
 import hashlib
 import json
 from functools import lru_cache
-from importlib.metadata import version
 from pathlib import Path
 from typing import Any
 
 import laspy
 
+from pipeline import __version__
 from pipeline.io.output_meta import OutputMeta
 
 SOFTWARE = "lidar-simplify"
@@ -22,7 +22,7 @@ PROVENANCE_RECORD_ID = 1
 
 def software_name() -> str:
     """`lidar-simplify <version>`, what the header's generating-software field holds (32 bytes at most)."""
-    return f"{SOFTWARE} {version(SOFTWARE)}"[:32]
+    return f"{SOFTWARE} {__version__}"[:32]
 
 
 @lru_cache(maxsize=None)
@@ -35,7 +35,7 @@ def weights_digest(path: Path | None) -> str | None:
 
 def run_record(meta: OutputMeta) -> dict[str, Any]:
     """The JSON-able provenance of one output: software, date, method, ratio, model weights, settings, sources."""
-    return {"software": SOFTWARE, "version": version(SOFTWARE), "created": datetime.date.today().isoformat(),
+    return {"software": SOFTWARE, "version": __version__, "created": datetime.date.today().isoformat(),
             "method": meta.method, "ratio": meta.ratio, "model_weights": weights_digest(meta.trained_weights),
             "settings": meta.settings, "sources": meta.sources}
 
