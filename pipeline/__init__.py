@@ -6,14 +6,13 @@ call, so Dask workers importing `pipeline.engine.tasks` stay light.
 """
 from __future__ import annotations
 
-__version__ = "0.3.13"  # the one place it is set: pyproject.toml reads it, outputs and work folders record it
-
 import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
 from pipeline.config import RunConfig, build_config
 from pipeline.errors import PipelineError, PipelineNote
+from pipeline.version import __version__
 
 if TYPE_CHECKING:
     import laspy
@@ -24,7 +23,7 @@ if TYPE_CHECKING:
     from pipeline.apps.scoring import Reference, Score
     from pipeline.engine.runner import RunReport
 
-__all__ = ["PipelineError", "PipelineNote", "RunConfig", "compare", "evaluate", "info", "run", "simplify"]
+__all__ = ["PipelineError", "PipelineNote", "RunConfig", "__version__", "compare", "evaluate", "info", "run", "simplify"]
 
 
 def run(inputs: str | Path | Sequence[str | Path], output: str | Path | None = None, *, ratio: float | None = None,

@@ -12,7 +12,7 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGES = ("model", "tiling", "pipeline")
-FOUNDATION = ("pipeline.errors", "pipeline.progress", "pipeline.config")
+FOUNDATION = ("pipeline.errors", "pipeline.progress", "pipeline.config", "pipeline.version")
 LAYERS = {  # a module may import its own layer's modules and those of lower layers
     "model": 0, "tiling": 1, "foundation": 2, "pipeline.io": 3, "pipeline.engine": 4, "pipeline.simulate": 4,
     "pipeline.apps": 5, "pipeline": 6,

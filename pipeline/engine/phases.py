@@ -15,7 +15,6 @@ from model.methods import Fill
 from model.rules import kept_count
 from model.selection import VoxelCounts
 from model.stratified import at_cover_floor
-from pipeline import __version__
 from pipeline.config import RunConfig, parse_size
 from pipeline.engine.classes import ClassRule
 from pipeline.engine.execute import map_tasks
@@ -29,6 +28,7 @@ from pipeline.io.output_meta import OutputMeta
 from pipeline.io.scan import Piece, Scan
 from pipeline.io.writers import write_output
 from pipeline.progress import Progress, counted
+from pipeline.version import __version__
 from tiling.assemble import level_parts, seam_rejections
 from tiling.bucket import SubCellIndex, cell_boxes, halo_slices, row_ranges
 from tiling.budgets import (count_between, coverage_weights, even_spacing, feasible_radius, grouped_budgets, hole_voxels,

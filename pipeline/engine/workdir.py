@@ -17,9 +17,9 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from model.registry import changed_parameters
-from pipeline import __version__
 from pipeline.config import RunConfig
 from pipeline.io.atomic import atomic_output
+from pipeline.version import __version__
 
 MANIFEST = "manifest.json"
 RESULT_SETTINGS = ("ratio", "method", "tile_size", "overlap", "max_tile_points", "merge_tile_points", "seam_tolerance",

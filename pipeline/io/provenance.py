@@ -12,8 +12,8 @@ from typing import Any
 
 import laspy
 
-from pipeline import __version__
 from pipeline.io.output_meta import OutputMeta
+from pipeline.version import __version__
 
 SOFTWARE = "lidar-simplify"
 PROVENANCE_USER_ID = "lidar-simplify"  # 16 bytes at most in a VLR
