@@ -194,3 +194,18 @@ def test_demo_flies_over_the_street_with_the_airborne_preset(tmp_path):
     simplified = laspy.read(tmp_path / "demo_airborne.simplified.laz")
     assert len(scan.points) == 40_000 and len(simplified.points) == 4_000 and "(1 tiles" in result.stdout
     assert np.abs(np.asarray(scan.scan_angle_rank)).max() <= 25
+
+
+def test_version_is_the_package_s_own_and_the_installed_metadata_agrees():
+    """`pipeline --version` prints pipeline/version.py's value (the checkout's own, not whichever copy is
+    installed), which pyproject.toml reads into the installed metadata."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    from pipeline.version import __version__
+
+    result = cli("--version")
+    assert result.returncode == 0 and result.stdout.strip() == f"pipeline, version {__version__}", result
+    try:
+        assert version("lidar-simplify") == __version__
+    except PackageNotFoundError:
+        pytest.skip("lidar-simplify is not installed (run from a checkout on PYTHONPATH)")

@@ -23,6 +23,7 @@ from pipeline.config import METHODS, build_config, parse_list, parse_parameters 
 from pipeline.engine.stop_guard import STOP_GRACE_S  # noqa: E402
 from pipeline.errors import Interrupted, PipelineError, Terminated, file_system_error, signal_exit_code  # noqa: E402
 from pipeline.progress import Progress  # noqa: E402
+from pipeline.version import __version__  # noqa: E402
 
 EXIT_ERROR = 2
 
@@ -62,7 +63,7 @@ def raise_terminated(signum: int, frame: object) -> None:
 
 
 @click.group(cls=OneLineErrors, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})
-@click.version_option(package_name="lidar-simplify")
+@click.version_option(__version__)  # this checkout's, not an installed copy's
 def cli() -> None:
     """Simplify very large LiDAR scans while keeping edges, corners, poles and facades.
 
