@@ -136,3 +136,82 @@ def test_a_laz_output_holds_every_tiles_records_in_order_whatever_the_compressio
     assert written == 5_000
     assert np.array_equal(laspy.read(out).points.array, las.points.array)
     assert [len(batch) for batch in writers.batched((p.records for p in parts), 2_500)] == [3_000, 2_000]  # a tail
+
+
+def ply_with(path, properties: dict[str, np.ndarray], n: int = 4_000, seed: int = 5):
+    """A binary PLY of n random vertices with x, y, z and the given properties; returns its vertex array."""
+    from plyfile import PlyData, PlyElement
+
+    rng = np.random.default_rng(seed)
+    vertex = np.zeros(n, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8")]
+                      + [(name, values.dtype.str) for name, values in properties.items()])
+    vertex["x"], vertex["y"], vertex["z"] = rng.uniform(0, 30, n), rng.uniform(0, 30, n), rng.uniform(0, 3, n)
+    for name, values in properties.items():
+        vertex[name] = values
+    PlyData([PlyElement.describe(vertex, "vertex")]).write(str(path))
+    return vertex
+
+
+def kept_vertices(las: laspy.LasData, vertex: np.ndarray) -> np.ndarray:
+    """The PLY vertices the output kept, in its order, matched on the millimetre grid."""
+    key = lambda x, y, z: (round(x * 1000), round(y * 1000), round(z * 1000))  # noqa: E731
+    rows = {key(*v): i for i, v in enumerate(zip(vertex["x"], vertex["y"], vertex["z"]))}
+    return vertex[[rows[key(*p)] for p in zip(las.x, las.y, las.z)]]
+
+
+def test_ply_properties_named_as_las_dimensions_fill_them_and_the_rest_survive_renamed(tmp_path):
+    """PDAL and CloudCompare export `intensity`, `classification`, `GpsTime` and the like: they fill those LAS
+    dimensions (they crashed the run as duplicate extra bytes), a property named as a LAS field it cannot fill
+    (`X`, `scan_angle`) or longer than LAS's 32 bytes is kept as an extra dimension under another name, with its
+    PLY name in the description, and a PLY without returns is written as single returns (LAS 1.4 needs 1+)."""
+    n, rng = 4_000, np.random.default_rng(1)
+    long_name = "a_property_name_longer_than_the_32_bytes_las_allows"
+    vertex = ply_with(tmp_path / "in.ply", {
+        "intensity": rng.integers(0, 65536, n).astype("u2"), "classification": rng.integers(0, 20, n).astype("u1"),
+        "GpsTime": rng.uniform(0, 1e5, n), long_name: rng.normal(size=n).astype("f4"),
+        "X": rng.normal(size=n).astype("f4"), "scan_angle": rng.uniform(-20, 20, n).astype("f4")}, n)
+    pipeline.run(tmp_path / "in.ply", tmp_path / "out.laz", ratio=0.5, method="fps", workers=1)
+    las = laspy.read(tmp_path / "out.laz")
+    src = kept_vertices(las, vertex)
+    np.testing.assert_array_equal(las.intensity, src["intensity"])
+    np.testing.assert_array_equal(las.classification, src["classification"])
+    np.testing.assert_array_equal(las.gps_time, src["GpsTime"])
+    extras = {e.name: e.description for e in las.point_format.extra_dimensions}
+    assert extras == {"ply_a_property_name_longer_than_": "PLY a_property_name_longer_than_", "ply_X": "PLY X",
+                      "ply_scan_angle": "PLY scan_angle"}
+    np.testing.assert_array_equal(las["ply_a_property_name_longer_than_"], src[long_name])
+    np.testing.assert_array_equal(las["ply_X"], src["X"])
+    np.testing.assert_array_equal(las["ply_scan_angle"], src["scan_angle"])
+    assert (las.return_number == 1).all() and (las.number_of_returns == 1).all()
+
+
+@pytest.mark.parametrize("dtype, values, expected", [
+    ("u1", [0, 128, 255], [0, 128 * 257, 65535]),
+    ("u2", [0, 40_000, 65535], [0, 40_000, 65535]),       # 16-bit colours as they are (x257 wrapped them)
+    ("f4", [0.0, 0.5, 1.0], [0, 32768, 65535]),           # 0-1 floats (became 0)
+    ("f4", [0.0, 128.0, 255.0], [0, 128 * 257, 65535]),   # 0-255 floats
+])
+def test_ply_colours_of_any_type_fill_las_s_16_bit_range(tmp_path, dtype, values, expected):
+    n = 3_000
+    channel = np.resize(np.array(values, dtype=dtype), n)
+    vertex = ply_with(tmp_path / "in.ply", {"red": channel, "green": channel, "blue": channel}, n)
+    pipeline.run(tmp_path / "in.ply", tmp_path / "out.las", ratio=0.5, method="fps", workers=1)
+    las = laspy.read(tmp_path / "out.las")
+    lookup = dict(zip(np.array(values, dtype=dtype).tolist(), expected))
+    wanted = [lookup[v] for v in kept_vertices(las, vertex)["red"].tolist()]
+    for name in ("red", "green", "blue"):
+        np.testing.assert_array_equal(las[name], wanted)
+
+
+def test_a_ply_list_property_on_vertices_is_refused_in_one_line(tmp_path):
+    from plyfile import PlyData, PlyElement
+
+    from pipeline.io.ply_source import PlySource
+
+    vertex = np.empty(3, dtype=[("x", "f8"), ("y", "f8"), ("z", "f8"), ("ids", "O")])
+    vertex["x"] = vertex["y"] = vertex["z"] = [0.0, 1.0, 2.0]
+    vertex["ids"] = [np.array([1, 2], dtype="i4")] * 3
+    PlyData([PlyElement.describe(vertex, "vertex", len_types={"ids": "u1"}, val_types={"ids": "i4"})]).write(
+        str(tmp_path / "in.ply"))
+    with pytest.raises(pipeline.PipelineError, match="'ids' is a list"):
+        PlySource(tmp_path / "in.ply")

@@ -1,4 +1,5 @@
-"""PLY point clouds (Toronto3D's schema) read as LAS 1.4 point format 7 records, chunk by chunk."""
+"""PLY point clouds read as LAS 1.4 point format 7 records, chunk by chunk (which property goes where:
+pipeline.io.ply_schema)."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -9,17 +10,9 @@ from plyfile import PlyData, PlyElement, PlyParseError
 
 from model.rules import grid_ints
 from pipeline.errors import PipelineError
+from pipeline.io.ply_schema import XYZ, Converter, PlySchema, colour_converter
 
 PLY_SCALE = 0.001  # millimetre grid: finer than any mobile scanner's range noise
-XYZ = ("x", "y", "z")
-RGB = ("red", "green", "blue")
-# Toronto3D property -> (LAS dimension, converter from the PLY values)
-MAPPED = {
-    "scalar_Intensity": ("intensity", lambda v: np.clip(np.rint(v), 0, 65535).astype(np.uint16)),
-    "scalar_GPSTime": ("gps_time", lambda v: v.astype(np.float64)),
-    "scalar_ScanAngleRank": ("scan_angle", lambda v: np.clip(np.rint(v / 0.006), -30000, 30000).astype(np.int16)),
-    "scalar_Label": ("classification", lambda v: np.clip(np.rint(v), 0, 255).astype(np.uint8)),
-}
 
 
 class PlySource:
@@ -28,10 +21,8 @@ class PlySource:
     def __init__(self, path: Path, chunk: int = 1_000_000) -> None:
         self.path = path
         self._vertices = self._open_vertices()
-        names = [p.name for p in self._vertices.properties]
-        if not set(XYZ) <= set(names):
-            raise PipelineError(f"{path}: PLY vertices lack x, y, z properties")
-        self._extra = [n for n in names if n not in XYZ + RGB and n not in MAPPED]
+        self.schema = PlySchema.of(self._vertices.data.dtype, str(path))
+        self._colours: dict[str, Converter] = {}
         self.header = self._make_header(chunk)
 
     def _open_vertices(self) -> PlyElement:
@@ -61,12 +52,17 @@ class PlySource:
         at a time (a NaN or infinity shows in a column's minimum or maximum): stacking the columns into rows
         and reducing across them took 0.3 s of bcts_1..4's 2.8M vertices."""
         header = laspy.LasHeader(version="1.4", point_format=7)
-        for name in self._extra:
-            dtype = np.dtype(self._vertices.data.dtype[name])
-            header.add_extra_dim(laspy.ExtraBytesParams(name=name, type=dtype.newbyteorder("=")))
+        for name, las_name, dtype in self.schema.extras:
+            header.add_extra_dim(laspy.ExtraBytesParams(name=las_name, type=dtype,
+                                                        description=f"PLY {name}"[:32]))
         mins = np.full(3, np.inf)
         maxs = np.full(3, -np.inf)
+        peaks = dict.fromkeys(self.schema.colours, 0.0)  # a float channel's range sets its scale
         for start in range(0, self.point_count, chunk):
+            for channel in peaks:
+                if self._vertices.data.dtype[channel].kind == "f":
+                    column = self._column(channel, start, start + chunk)
+                    peaks[channel] = max(peaks[channel], float(np.nanmax(column)) if len(column) else 0.0)
             for axis, name in enumerate(XYZ):
                 column = self._column(name, start, start + chunk)
                 low, high = float(column.min()), float(column.max())
@@ -75,6 +71,7 @@ class PlySource:
                     raise PipelineError(f"{self.path}: NaN or infinite {name} coordinate at vertex {vertex} "
                                         f"(counting from 0)")
                 mins[axis], maxs[axis] = min(mins[axis], low), max(maxs[axis], high)
+        self._colours = {c: colour_converter(self._vertices.data.dtype[c], peak) for c, peak in peaks.items()}
         if self.point_count:
             header.offsets = np.floor(mins)
             header.scales = np.full(3, PLY_SCALE)
@@ -93,14 +90,12 @@ class PlySource:
             # and checks (the header fits them in int32): bcts_1..4's 2.8M vertices 0.14-0.33 -> 0.10-0.17 s
             record.array[name.upper()] = grid_ints(self._column(name, start, stop), self.header.scales[axis],
                                                    self.header.offsets[axis])
-        names = self._vertices.data.dtype.names
-        for channel in RGB:
-            if channel in names:
-                # 8-bit PLY colour to LAS's 16-bit range (x257 maps 255 to 65535)
-                record[channel] = self._column(channel, start, stop).astype(np.uint16) * 257
-        for prop, (dim, convert) in MAPPED.items():
-            if prop in names:
-                record[dim] = convert(self._column(prop, start, stop))
-        for name in self._extra:
-            record[name] = self._column(name, start, stop)
+        for channel, convert in self._colours.items():
+            record[channel] = convert(self._column(channel, start, stop))
+        for prop, dim, convert in self.schema.mapped:
+            record[dim] = convert(self._column(prop, start, stop))
+        if self.schema.default_returns:
+            record["return_number"] = record["number_of_returns"] = np.ones(count, dtype=np.uint8)
+        for prop, las_name, _ in self.schema.extras:
+            record[las_name] = self._column(prop, start, stop)
         return record.array
