@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import struct
 import subprocess
 from pathlib import Path
 
@@ -10,9 +11,11 @@ import copclib
 import laspy
 import numpy as np
 import pytest
+from click.testing import CliRunner
 from laspy.copc import Bounds
 
 import pipeline
+from pipeline.apps.cli import cli
 from pipeline.errors import PipelineError
 from pipeline.io import copc_output
 from pipeline.io.crs import crs_wkt
@@ -224,6 +227,47 @@ def test_legacy_point_formats_become_6_and_7_with_every_field(tmp_path, point_fo
     assert kept <= {tuple(row) for row in table(converted, result.point_format)}
     assert len(np.unique(result["scan_angle"])) > 100 and len(np.unique(result["classification"])) > 10
 
+
+def tail_bytes(records: np.ndarray, count: int) -> np.ndarray:
+    """(n, count) last `count` bytes of every record."""
+    return np.ascontiguousarray(records).view(np.uint8).reshape(len(records), -1)[:, -count:]
+
+
+@pytest.mark.parametrize("size", [4, 8, 30])
+def test_undocumented_extra_bytes_are_kept_and_read_back(tmp_path, size):
+    """Records longer than their format with no extra-bytes VLR: laspy reads the bytes as one `ExtraBytes` field;
+    the COPC file must be readable by laspy and `info` and hold each kept point's bytes."""
+    header = laspy.LasHeader(point_format=1, version="1.2")
+    header.scales, header.offsets = [0.01] * 3, [0.0] * 3
+    header.add_extra_dim(laspy.ExtraBytesParams("raw", f"{size}u1"))
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(size)
+    n = 3_000
+    las.x, las.y, las.z = rng.uniform(0, 40, n), rng.uniform(0, 40, n), rng.uniform(0, 3, n)
+    las.gps_time = np.arange(n, dtype=np.float64)  # the point's id
+    las.raw = rng.integers(0, 256, size=(n, size), dtype=np.uint8)
+    documented = tmp_path / "documented.las"
+    las.write(documented)
+    raw = documented.read_bytes()  # drop the extra-bytes VLR (the only VLR): the bytes become undocumented
+    header_size, = struct.unpack_from("<H", raw, 94)
+    points_at, = struct.unpack_from("<I", raw, 96)
+    stripped = bytearray(raw[:header_size] + raw[points_at:])
+    struct.pack_into("<II", stripped, 96, header_size, 0)
+    source_path = tmp_path / "in.las"
+    source_path.write_bytes(bytes(stripped))
+    source = laspy.read(source_path)
+    assert list(source.point_format.extra_dimension_names) == ["ExtraBytes"] and not source.header.vlrs
+    out = tmp_path / "out.copc.laz"
+    pipeline.run(source_path, out, ratio=0.3, method="fps", workers=1, tile_size=10)
+    result = laspy.read(out)
+    assert result.header.point_format.id == 6 and len(result.points) == 900
+    ids = result.gps_time.astype(np.int64)
+    np.testing.assert_array_equal(tail_bytes(result.points.array, size), tail_bytes(source.points.array, size)[ids])
+    np.testing.assert_array_equal(result.X, source.X[ids])
+    with laspy.CopcReader.open(out) as reader:
+        assert len(reader.query()) == 900
+    info = CliRunner().invoke(cli, ["info", str(out)], prog_name="pipeline")
+    assert info.exit_code == 0 and "900" in info.output, info.output
 
 def test_input_evlrs_follow_the_hierarchy(tmp_path):
     source = random_scan(6)

@@ -87,18 +87,38 @@ def copc_point_format(source: laspy.PointFormat) -> laspy.PointFormat:
         raise PipelineError(f"point format {source.id} carries waveform packets, which COPC 1.0 (formats 6-8) "
                             "cannot hold: write .laz to keep them")
     target = laspy.PointFormat(COPC_FORMATS[source.id])
-    target.dimensions.extend(source.extra_dimensions)
+    for dimension in source.extra_dimensions:
+        names = byte_fields(dimension)
+        if not names:
+            target.dimensions.append(dimension)
+        for index, name in enumerate(names):
+            target.add_extra_dimension(laspy.ExtraBytesParams(name, "u1", f"byte {index} of {dimension.name}"[:32]))
     return target
 
 
+def byte_fields(dimension: laspy.DimensionInfo) -> list[str]:
+    """The names of the one-byte fields (`<name>_<i>`) that hold `dimension` in COPC when it is a run of more than
+    3 bytes (the input's undocumented extra bytes, which laspy reads as one `ExtraBytes` field), else []: laspy
+    describes such a run as data_type 0 with options = its byte count, then reads those options back as
+    scale/offset flags and cannot open the file; one `u1` field per byte round-trips and keeps every byte."""
+    dtype = dimension.dtype
+    if dimension.is_standard or dtype is None or dtype.base != np.uint8 or dimension.num_elements <= 3:
+        return []
+    return [f"{dimension.name}_{index}" for index in range(dimension.num_elements)]
+
+
 def to_copc_records(records: np.ndarray, source: laspy.PointFormat, target: laspy.PointFormat) -> np.ndarray:
-    """(n,) records of `source` as records of `target`: fields copied by name as laspy's conversion does, and
-    the legacy scan_angle_rank (degrees) converted to scan_angle (0.006 degree units), which laspy leaves 0."""
-    if source.id == target.id:
-        return records
+    """(n,) records of `source` as records of `target`: fields copied by name as laspy's conversion does, byte
+    runs into their byte fields, and the legacy scan_angle_rank (degrees) converted to scan_angle (0.006 degree
+    units), which laspy leaves 0."""
+    if source.id == target.id:  # a byte run split in byte fields keeps its layout: same records, new names
+        return records if records.dtype == target.dtype() else records.view(target.dtype())
     packed = laspy.PackedPointRecord(records, source)
     converted = laspy.PackedPointRecord.from_point_record(packed, target)
     converted["scan_angle"] = np.rint(np.asarray(packed["scan_angle_rank"]) / SCAN_ANGLE_UNIT).astype(np.int16)
+    for dimension in source.extra_dimensions:
+        for index, name in enumerate(byte_fields(dimension)):
+            converted[name] = records[dimension.name][:, index]
     return converted.array
 
 
