@@ -10,7 +10,7 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Sequence
 
-from pipeline.config import RunConfig, build_config
+from pipeline.config import RunConfig, build_config, plain_numbers
 from pipeline.errors import PipelineError, PipelineNote
 from pipeline.version import __version__
 
@@ -48,7 +48,7 @@ def run(inputs: str | Path | Sequence[str | Path], output: str | Path | None = N
     from pipeline.engine.runner import run_scan
     from pipeline.progress import Progress
 
-    if ratio is None and not settings.get("levels"):
+    if ratio is None and not plain_numbers(settings.get("levels")):  # an array of levels, too
         raise PipelineError("give ratio (the fraction of points to keep) or levels")
     paths = [inputs] if isinstance(inputs, (str, Path)) else list(inputs)
     return run_scan(paths, output, build_config(config, ratio=ratio, **settings), overwrite=overwrite,

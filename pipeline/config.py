@@ -210,6 +210,18 @@ def checked_settings(settings: dict[str, Any], where: str) -> dict[str, Any]:
     return settings
 
 
+def plain_numbers(value: Any) -> Any:
+    """A numpy scalar or array (np.float32(0.1), an array of levels) as Python numbers, as the user wrote them
+    (a float32 by its shortest decimal, 0.1, not 0.10000000149); anything else unchanged. The checks and the
+    count round(ratio * N) then treat it as they treat Python's own."""
+    dtype = getattr(value, "dtype", None)
+    if dtype is None or isinstance(value, (str, bytes)):
+        return value
+    if getattr(value, "ndim", 0):
+        return tuple(plain_numbers(each) for each in value)
+    return float(str(value)) if dtype.kind == "f" and dtype.itemsize < 8 else value.item()
+
+
 def build_config(config: str | None = None, *, method: str | Method | None = None,
                  method_parameters: dict[str, Any] | None = None, **overrides: Any) -> RunConfig:
     """Defaults, then the preset or file, then the non-None overrides; validated. `method` is a name or a
@@ -217,7 +229,7 @@ def build_config(config: str | None = None, *, method: str | Method | None = Non
     defaults, then the file's [method.<name>] table, then the object's, then `method_parameters`."""
     base = RunConfig()
     settings, method_tables = load_settings(config)
-    settings.update({k: v for k, v in overrides.items() if v is not None})
+    settings.update({k: plain_numbers(v) for k, v in overrides.items() if v is not None})
     settings = {k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()}
     given: dict[str, Any] = {}
     if isinstance(method, Method):

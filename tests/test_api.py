@@ -94,3 +94,23 @@ def test_a_runs_notes_reach_python_callers_as_warnings(tmp_path):
     with pytest.warns(pipeline.PipelineNote, match="no usable CRS: its coordinates are taken as metres"):
         report = pipeline.run(tmp_path / "no_crs.las", tmp_path / "out.las", ratio=0.1, method="random")
     assert report.output_points == 500
+
+
+def test_numpy_numbers_are_taken_as_python_s(tmp_path):
+    """A notebook's ratio is often a numpy scalar and its levels an array: np.float32(0.5) was refused as
+    'not in (0, 1]' and an array of levels failed on its truth value."""
+    rng = np.random.default_rng(2)
+    xyz = rng.uniform(0, 20, (3_000, 3))
+    assert len(pipeline.simplify(xyz, np.float32(0.1), method="fps")) == 300
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.scales = [0.001] * 3
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    las.write(tmp_path / "in.las")
+    pipeline.run(tmp_path / "in.las", tmp_path / "out.las", levels=np.array([0.2, 0.1]), method="fps")
+    assert [laspy.read(tmp_path / f"out.r{r}.las").header.point_count for r in ("0.2", "0.1")] == [600, 300]
+
+
+def test_an_empty_cloud_is_refused_naming_the_cloud_not_a_temporary_file():
+    with pytest.raises(pipeline.PipelineError, match="^points: the array holds no points"):
+        pipeline.simplify(np.empty((0, 3)), 0.1)

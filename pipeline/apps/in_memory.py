@@ -38,12 +38,12 @@ def simplify(points: np.ndarray | laspy.LasData, ratio: float, *, method: str | 
     progressive one: any prefix is a coarser, spread-out simplification (tile by tile, a point's rank is
     its place in its tile's own order, as a fraction of what the tile keeps).
     """
+    run_config = build_config(config, ratio=ratio, method=method, **settings)  # a bad setting before any work
     with tempfile.TemporaryDirectory(prefix="lidar-simplify-") as folder:
         source = Path(folder) / "cloud.las"
         _write_indexed(points, source)
         output = Path(folder) / "kept.zarr"
-        run_scan([source], output, build_config(config, ratio=ratio, method=method, **settings),
-                 client=client)
+        run_scan([source], output, run_config, client=client)
         group = zarr.open_group(str(output), mode="r")
         index = np.asarray(group[INDEX_DIMENSION][:], dtype=np.int64)
         counts = np.asarray(group["tile_count"][:], dtype=np.int64)
@@ -65,12 +65,16 @@ def _write_indexed(points: np.ndarray | laspy.LasData, path: Path) -> None:
         header.vlrs.extend(v for v in points.header.vlrs if v.user_id == "LASF_Projection")
         records = points.points.array
         count = len(records)
+        if count == 0:
+            raise PipelineError("points: the LasData holds no points (nothing to simplify)")
     else:
         xyz = np.asarray(points, dtype=np.float64)
         if xyz.ndim != 2 or xyz.shape[1] != 3:
             raise PipelineError(f"points must be an (n, 3) array of coordinates, got shape {xyz.shape}")
         if not np.isfinite(xyz).all():
             raise PipelineError("points hold NaN or infinite coordinates")
+        if len(xyz) == 0:
+            raise PipelineError("points: the array holds no points (nothing to simplify)")
         header = laspy.LasHeader(version="1.4", point_format=6)
         header.offsets = xyz.min(axis=0) if len(xyz) else np.zeros(3)
         span = float((xyz.max(axis=0) - header.offsets).max()) if len(xyz) else 0.0
