@@ -339,3 +339,22 @@ def test_workers_dying_of_memory_end_in_one_line_that_names_the_limit(tmp_path):
     again = cli(*args, "--memory-limit", "2GB")
     assert again.returncode == 0, again.stderr
     assert laspy.read(tmp_path / "out.laz").header.point_count == 10_000
+
+
+def test_a_second_run_of_the_same_command_while_the_first_runs_is_refused_in_one_line(tmp_path):
+    """Overlapping scheduled jobs ran the same command into one work folder: the second failed on a file the
+    first renamed (a FileNotFoundError traceback), or both finished and the second replaced the output. The
+    first run holds the folder (here the test holds it, as a running `pipeline run` does): the second is
+    refused before it touches the folder or the output, and runs once the folder is free."""
+    from pipeline.config import build_config
+    from pipeline.engine.workdir import WorkDir
+
+    scan, out = small_las(tmp_path / "in.las", n=5_000), tmp_path / "out.las"
+    work = WorkDir.for_run(out, None, [scan], build_config(None, ratio=0.1, method="fps", workers=1).in_unit(1.0))
+    args = ("run", str(scan), "-r", "0.1", "-o", str(out), *FAST)
+    with work.held():
+        assert_one_line_error(cli(*args), "another run of the same command", str(work.path))
+        assert not out.exists() and (work.path / "manifest.json").is_file()
+    result = cli(*args)
+    assert result.returncode == 0, result.stderr
+    assert laspy.read(out).header.point_count == 500 and not work.path.exists()

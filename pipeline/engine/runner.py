@@ -136,31 +136,33 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     for path in outputs:
         remove_stale_temporaries(path)
     work = WorkDir.for_run(output, Path(scratch) if scratch else None, scan.paths, config)
-    written = None
-    guard = StopGuard(stop_grace_s)
-    try:
-        threads = local_workers(config.workers)
-        elsewhere = use_tile_processes(scan.point_count, threads, config.simplifier.tile_processes_from)
-        here = runs_in_process(scan.point_count, config.in_process_points, threads, config.simplifier.light_on_gil,
-                               elsewhere)
-        with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here,
-                                                        elsewhere) as active:
-            try:
-                written, tiles, resumed, kept_whole, fill = simplify_scan(scan, outputs, config, settings, work, active,
-                                                                          clock, progress or Progress(),
-                                                                          note or (lambda line: None))
-            except KeyboardInterrupt as exc:  # the cluster closes next: bounded, if a grace is given
-                guard.arm(f"pipeline: {interrupted_line(work)}", signal_exit_code(exc))
+    with work.held():  # a second run of the same command is refused before it touches the folder
+        written = None
+        guard = StopGuard(stop_grace_s)
+        try:
+            threads = local_workers(config.workers)
+            elsewhere = use_tile_processes(scan.point_count, threads, config.simplifier.tile_processes_from)
+            here = runs_in_process(scan.point_count, config.in_process_points, threads, config.simplifier.light_on_gil,
+                                   elsewhere)
+            with nullcontext(client) if client else cluster(config.workers, config.memory_limit, scheduler, here,
+                                                            elsewhere) as active:
+                try:
+                    written, tiles, resumed, kept_whole, fill = simplify_scan(
+                        scan, outputs, config, settings, work, active, clock, progress or Progress(),
+                        note or (lambda line: None))
+                except KeyboardInterrupt as exc:  # the cluster closes next: bounded, if a grace is given
+                    guard.arm(f"pipeline: {interrupted_line(work)}", signal_exit_code(exc))
+                    raise
+        except PipelineError as exc:
+            if not work.has_results():
+                work.remove()
                 raise
-    except PipelineError as exc:
-        if not work.has_results():
-            work.remove()
-            raise
-        raise PipelineError(f"{exc} (finished work kept in {work.path}: re-run the same command to resume)") from exc
-    except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM through the CLI's handler; the cluster is closed by now
-        guard.cancel()
-        raise interrupted(exc, work, output if written is not None else None) from None
-    work.remove()
+            raise PipelineError(f"{exc} (finished work kept in {work.path}: re-run the same command to "
+                                "resume)") from exc
+        except KeyboardInterrupt as exc:  # Ctrl-C, or SIGTERM through the CLI's handler; the cluster is closed by now
+            guard.cancel()
+            raise interrupted(exc, work, output if written is not None else None) from None
+        work.remove()
     hole = None if fill is None else (fill.cover_radius * unit.metres, fill.unbounded_radius * unit.metres)
     return RunReport(outputs[0], scan.point_count, written[0], tiles, resumed, clock.total, clock.laps,
                      tuple(zip(outputs, written)), kept_whole, hole, 0 if fill is None else fill.floor_tiles)

@@ -7,21 +7,27 @@ result file is written under a temporary name and renamed: a file that exists is
 """
 from __future__ import annotations
 
+import errno
+import fcntl
 import hashlib
 import json
+import os
 import shutil
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Iterator, Sequence
 
 import numpy as np
 
 from model.registry import changed_parameters
 from pipeline.config import RunConfig
+from pipeline.errors import PipelineError
 from pipeline.io.atomic import atomic_output
 from pipeline.version import __version__
 
 MANIFEST = "manifest.json"
+LOCK = "lock"
 RESULT_SETTINGS = ("ratio", "method", "tile_size", "overlap", "max_tile_points", "merge_tile_points", "seam_tolerance",
                    "chunk_points", "seed", "keep_classes", "thin_classes", "levels")  # the settings that change the output; workers and memory do not
 
@@ -78,6 +84,24 @@ class WorkDir:
                         "settings": asdict(config)}
             write_atomically(work.path / MANIFEST, lambda tmp: tmp.write_text(json.dumps(manifest, indent=2)))
         return work
+
+    @contextmanager
+    def held(self) -> Iterator[None]:
+        """Hold the folder for this run (an advisory lock on a file in it, released when the process ends,
+        however it ends): a second run of the same command while the first runs, such as an overlapping
+        scheduled job, is refused in one line instead of failing on files the first one renames or removes.
+        Where the file system has no locks (some network mounts), runs are not held apart."""
+        descriptor = os.open(self.path / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                if exc.errno in (errno.EWOULDBLOCK, errno.EACCES):
+                    raise PipelineError(f"{self.path}: another run of the same command is working in this folder "
+                                        "(wait for it to finish, or stop it and re-run to resume)") from None
+            yield
+        finally:
+            os.close(descriptor)
 
     @property
     def store_path(self) -> Path:
