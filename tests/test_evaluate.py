@@ -7,11 +7,13 @@ from pathlib import Path
 import laspy
 import matplotlib.image
 import numpy as np
+import pyproj
 import pytest
 import zarr
 from click.testing import CliRunner
 
 import pipeline
+import pipeline.apps.comparison
 from pipeline.apps.cli import cli
 from pipeline.apps.comparison import RunOptions, compare
 from pipeline.apps.scoring import METRIC_COLUMNS
@@ -119,3 +121,34 @@ def test_compare_writes_table_json_and_plots(tmp_path):
     for png in pngs:
         assert png.read_bytes()[:8] == PNG_SIGNATURE
         assert matplotlib.image.imread(png).ndim == 3
+
+
+def write_line_scan(path: Path, n: int = 20_000) -> Path:
+    """`n` points along a straight 500 m line in UTM 10N: the pictured region is a sliver holding a point or so."""
+    header = laspy.LasHeader(point_format=3, version="1.4")
+    header.add_crs(pyproj.CRS.from_epsg(32610))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = np.linspace(0, 500, n), np.full(n, 3.0), np.random.default_rng(6).uniform(0, 1, n)
+    las.write(path)
+    return path
+
+
+def test_compare_pictures_a_result_with_no_point_in_the_region(tmp_path, monkeypatch):
+    shown = []  # the result panels region_view drew: (xyz, curvature) by (method, ratio)
+    real_view = pipeline.apps.comparison.region_view
+
+    def recording_view(reference, panels, *args):
+        shown.append(panels)
+        return real_view(reference, panels, *args)
+
+    monkeypatch.setattr(pipeline.apps.comparison, "region_view", recording_view)
+    source = write_line_scan(tmp_path / "line.las")
+    result = run_cli("compare", str(source), "--ratios", "0.0001", "--methods", "random", "--workers", "1",
+                     "--out-dir", str(tmp_path / "out"))
+    assert result.exit_code == 0, result.output
+    assert result.exception is None
+    xyz, curvature = shown[0][("random", 0.0001)]
+    assert len(xyz) == len(curvature) == 0  # 2 points kept, none in the sliver: an empty panel
+    assert (tmp_path / "out" / "region.png").read_bytes()[:8] == PNG_SIGNATURE
+    for n in (0, 1, 2):  # too few points for a neighbourhood still give a curvature per point
+        assert pipeline.apps.comparison.region_curvature(np.random.default_rng(n).uniform(size=(n, 3))).shape == (n,)

@@ -202,3 +202,36 @@ def test_an_unparseable_crs_stays_text_without_spatial_ref(tmp_path):
     dataset = open_quietly(store)
     assert dataset.attrs["crs_wkt"]  # the raw text, as the input has it
     assert "spatial_ref" not in dataset.variables and "grid_mapping" not in dataset["intensity"].attrs
+
+
+def write_clashing_scan(path: Path, names: tuple[str, ...]) -> Path:
+    """A 3,000-point LAS 1.4 patch in UTM 10N with a u2 extra-bytes dimension per name, the i-th holding 1000 * i
+    plus the point's index, so every dimension's values differ from the others'."""
+    header = laspy.LasHeader(point_format=3, version="1.4")
+    header.add_extra_dims([laspy.ExtraBytesParams(name, "u2") for name in names])
+    header.add_crs(pyproj.CRS.from_epsg(32610))
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(7)
+    las.x, las.y, las.z = rng.uniform(0, 60, 3_000), rng.uniform(0, 60, 3_000), rng.uniform(0, 2, 3_000)
+    for i, name in enumerate(names):
+        las[name] = 1_000 * i + np.arange(3_000, dtype=np.uint16)
+    las.write(path)
+    return path
+
+
+def test_extra_bytes_named_like_the_writers_arrays_or_with_a_slash_survive(tmp_path):
+    names = ("spatial_ref", "tile_count", "a/b")  # the grid mapping, a tile-index array, a zarr group separator
+    source = write_clashing_scan(tmp_path / "clash.las", names)
+    store, las_path = tmp_path / "clash.zarr", tmp_path / "clash_out.las"
+    for output in (store, las_path):
+        pipeline.run(source, output, ratio=0.5, method="random", workers=1)
+    dataset, las = open_quietly(store), laspy.read(las_path)
+    by_las_name = {variable.attrs.get("las_dimension"): key for key, variable in dataset.variables.items()}
+    for name in names:
+        assert name in by_las_name, f"{name} is missing from {sorted(dataset.variables)}"
+        variable = dataset[by_las_name[name]]
+        assert variable.dims == ("point",) and "/" not in by_las_name[name]
+        np.testing.assert_array_equal(variable.values, np.asarray(las[name]), err_msg=name)
+    assert by_las_name["spatial_ref"] != "spatial_ref" and by_las_name["tile_count"] != "tile_count"
+    assert pyproj.CRS.from_cf(dataset["spatial_ref"].attrs) == pyproj.CRS.from_epsg(32610)  # still the CRS
+    assert dataset["tile_count"].dims == ("tile",) and int(dataset["tile_count"].sum()) == dataset.sizes["point"]

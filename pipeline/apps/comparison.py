@@ -166,6 +166,12 @@ def write_region(reference: Reference, entries: Sequence[Entry], methods: Sequen
     panels: dict[tuple[str, float], Panel] = {}
     for e in entries:
         xyz = load_xyz(e.score.path, region) - reference.centre
-        panels[(e.method, e.ratio)] = (xyz, point_features(xyz).mean_curvature)
+        panels[(e.method, e.ratio)] = (xyz, region_curvature(xyz))
     return region_view((reference.xyz[inside], reference.features.mean_curvature[inside]), panels, methods,
                        ratios, out_dir / "region.png")
+
+
+def region_curvature(xyz: np.ndarray) -> np.ndarray:
+    """Mean curvature of a result's points in the region; none for a result with no point there (a tiny ratio,
+    a sparse or linear scan), where the kd-tree of point_features refuses an empty cloud: an empty panel then."""
+    return point_features(xyz).mean_curvature if len(xyz) else np.zeros(0, dtype=np.float32)

@@ -32,9 +32,39 @@ ZARR_CHUNK = 1_000_000
 ZARR_FORMAT = 2
 
 
-def zarr_dimensions(point_format: laspy.PointFormat) -> list[str]:
-    """Array names of a zarr output: scaled x, y, z, then every other LAS dimension (extra bytes too)."""
-    return list(COORDINATES) + [n for n in point_format.dimension_names if n not in ("X", "Y", "Z")]
+RESERVED = (GRID_MAPPING, "point", "tile", *TILE_COLUMNS)  # the writer's own array and dimension names, beside x, y, z
+EXTRA_PREFIX = "extra_"  # put before a LAS dimension name that clashes with one of them
+
+
+def zarr_dimensions(point_format: laspy.PointFormat) -> dict[str, str]:
+    """The array names of a zarr output, each mapped to the LAS dimension it holds: scaled x, y, z, then every
+    other LAS dimension (extra bytes too) under its own name where safe, else a unique one (see `safe_variable`),
+    so no dimension is lost or overwritten."""
+    taken = {name.casefold() for name in (*COORDINATES, *RESERVED)}
+    variables = {name: name for name in COORDINATES}
+    for name in point_format.dimension_names:
+        if name not in ("X", "Y", "Z"):
+            variables[safe_variable(name, taken, point_format.dimension_by_name(name).num_elements > 1)] = name
+    return variables
+
+
+def safe_variable(name: str, taken: set[str], elements: bool) -> str:
+    """An array name for the LAS dimension `name`, not in `taken` and added to it (casefolded: on a case-blind
+    disk a store's arrays are folders that would clash). `/` and `\\` become `_`, since zarr would make a nested
+    group that xarray never shows; a clashing name or a zarr key (`.zarray`, `..`) gets `EXTRA_PREFIX` until
+    unique, and so does one whose `<name>_element` dimension (with `elements`) would clash."""
+    safe = name.replace("/", "_").replace("\\", "_")
+    if not safe or safe.startswith("."):
+        safe = EXTRA_PREFIX + safe
+
+    def keys(candidate: str) -> set[str]:
+        """The casefolded names the candidate uses: its own, and its element dimension's."""
+        return {candidate.casefold(), *([f"{candidate}_element".casefold()] if elements else [])}
+
+    while keys(safe) & taken:
+        safe = EXTRA_PREFIX + safe
+    taken.update(keys(safe))
+    return safe
 
 
 def write_zarr(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[TilePart], meta: OutputMeta) -> int:
@@ -44,17 +74,18 @@ def write_zarr(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[
     group = zarr.open_group(str(path), mode="w", zarr_format=ZARR_FORMAT)
     crs = crs_from_wkt(meta.crs_wkt)
     point_format = header.point_format
-    names = zarr_dimensions(point_format)
+    names = zarr_dimensions(point_format)  # array name -> LAS name, which the attributes keep (las_dimension)
     probe = laspy.ScaleAwarePointRecord.zeros(1, header=header)
     mapping = {"grid_mapping": GRID_MAPPING} if crs is not None else {}  # only a CRS pyproj reads: readers parse it
     links = {"coordinates": " ".join([*COORDINATES, *mapping.values()]), **mapping}  # a data variable's coords
     chunk = min(ZARR_CHUNK, max(total, 1))
     arrays = {}
-    for name in names:
+    for variable, name in names.items():
         sample = np.asarray(probe[name])  # (1,), or (1, k) for an extra-bytes array of k elements
-        arrays[name] = _variable(group, name, ("point", *(f"{name}_element" for _ in sample.shape[1:])),
-                                 point_attrs(name, header, crs) | _data_links(name, links), dtype=sample.dtype,
-                                 shape=(total, *sample.shape[1:]), chunks=(chunk, *sample.shape[1:]))
+        dims = ("point", *(f"{variable}_element" for _ in sample.shape[1:]))
+        attrs = point_attrs(name, header, crs) | _data_links(variable, links)
+        arrays[variable] = _variable(group, variable, dims, attrs, dtype=sample.dtype, shape=(total, *sample.shape[1:]),
+                                     chunks=(chunk, *sample.shape[1:]))
     tile_ids: list[int] = []
     tile_bounds: list[tuple[float, float, float, float]] = []
     tile_counts: list[int] = []
@@ -65,8 +96,8 @@ def write_zarr(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[
         records = np.concatenate(pending) if pending else np.empty(0, point_format.dtype())
         size = len(records) if final else len(records) // ZARR_CHUNK * ZARR_CHUNK
         record = laspy.ScaleAwarePointRecord(records[:size], point_format, header.scales, header.offsets)
-        for name in names:
-            arrays[name][written:written + size] = np.asarray(record[name])
+        for variable, name in names.items():
+            arrays[variable][written:written + size] = np.asarray(record[name])
         pending[:] = [records[size:]]
         return written + size
 
