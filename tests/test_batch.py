@@ -60,10 +60,24 @@ def test_toml_job_list_with_defaults_and_per_job_settings(scans, tmp_path):
     assert "batch: 2 done, 0 already done, 0 failed" in result.stdout
 
 
+def test_a_job_s_own_levels_replace_the_defaults_ratio(scans, tmp_path):
+    """[defaults] ratio = 0.1 and one job's levels = [0.2, 0.1] failed the whole batch ('--ratio 0.1 disagrees
+    with --levels'): a job's own ratio or levels replace the defaults' output size."""
+    jobs = tmp_path / "jobs.toml"
+    jobs.write_text(f'[defaults]\nratio = 0.05\nmethod = "fps"\nworkers = 1\nout_dir = "small"\n'
+                    f'[[job]]\ninput = "{scans}/a.las"\nlevels = [0.2, 0.1]\n'
+                    f'[[job]]\ninput = "{scans}/b.las"\n')
+    result = cli("batch", str(jobs))
+    assert result.returncode == 0, result.stderr
+    counts = {p.name: len(laspy.read(p).points) for p in (tmp_path / "small").glob("*.las")}
+    assert counts == {"a.simplified.r0.2.las": 600, "a.simplified.r0.1.las": 300, "b.simplified.las": 100}
+
+
 @pytest.mark.parametrize("content, words", [
     ("[defaults]\nratio = 0.1\n", ("no [[job]] entries",)),
     ('[[job]]\noutput = "x.laz"\n', ("job 1 has no input",)),
     ("[[job]\n", ("not a readable TOML job list",)),
+    ('[[job]]\ninput = "a.las"\noutput = "x.laz"\nratio = 2\n', ("job 1: --ratio must be in (0, 1]",)),
 ])
 def test_bad_job_lists_are_one_line(tmp_path, content, words):
     jobs = tmp_path / "jobs.toml"

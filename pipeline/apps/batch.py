@@ -99,9 +99,20 @@ def jobs_from_toml(path: Path, out_dir: Path | None, overrides: dict[str, Any]) 
         if output is None and folder is None:
             raise PipelineError(f"{where} has no output and there is no out_dir")
         target = base / text_value(output, f"{where} output") if output is not None else folder / default_output(inputs[0]).name
-        settings = {**job_settings(defaults, f"{path}: [defaults]"), **job_settings(entry, where), **overrides}
-        jobs.append(BatchJob(inputs, target, build_config(settings.pop("config", None), **settings)))
+        own = job_settings(entry, where)
+        shared = {k: v for k, v in job_settings(defaults, f"{path}: [defaults]").items() if k not in sizes_of(own)}
+        settings = {**shared, **own, **overrides}
+        try:
+            jobs.append(BatchJob(inputs, target, build_config(settings.pop("config", None), **settings)))
+        except PipelineError as exc:
+            raise PipelineError(f"{where}: {exc}") from None
     return jobs
+
+
+def sizes_of(settings: dict[str, Any]) -> set[str]:
+    """The output-size settings a job's own `ratio` or `levels` replaces in [defaults]: both (the first level is
+    the ratio, so the defaults' other one would disagree with it), else none."""
+    return {"ratio", "levels"} if settings.keys() & {"ratio", "levels"} else set()
 
 
 def job_settings(table: dict[str, Any], where: str) -> dict[str, Any]:
