@@ -208,6 +208,11 @@ def test_folder_as_input(tmp_path, name):
     fails_cleanly(tmp_path, [tmp_path / name], name, "is a folder")
 
 
+def test_a_zarr_store_as_input_is_named_as_one(tmp_path):
+    (tmp_path / "small.zarr").mkdir()
+    fails_cleanly(tmp_path, [tmp_path / "small.zarr"], "small.zarr", "is a zarr store", "pipeline eval")
+
+
 def test_device_as_input(tmp_path):
     fails_cleanly(tmp_path, [Path("/dev/null")], "/dev/null", "not a regular file")
 

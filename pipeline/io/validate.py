@@ -35,6 +35,9 @@ BOUNDS_SLACK_SHARE = 0.01  # ... or this share of its extent, whichever is large
 
 def check_input_path(path: Path) -> None:
     """The input exists and is a regular file (not a folder, a device or a missing name)."""
+    if path.is_dir() and path.suffix.lower() == ".zarr":
+        raise PipelineError(f"{path}: is a zarr store, which this command does not read (it reads LAS/LAZ/COPC/PLY "
+                            "files; `pipeline eval` scores a store against its source)")
     if path.is_dir():
         raise PipelineError(f"{path}: is a folder, not a point cloud file (pass the files in it, e.g. {path}/*.laz)")
     if not path.exists():
