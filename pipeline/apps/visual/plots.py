@@ -60,7 +60,7 @@ def region_view(reference: Panel, panels: Mapping[tuple[str, float], Panel], met
             size = float(np.clip(MARKER_BUDGET / max(len(xyz), 1), 0.5, 4))  # sparse panels get bigger dots
             image = axes.scatter(u[order], v[order], c=curvature[order], s=size, cmap="viridis", vmin=0,
                                  vmax=vmax or 1.0, linewidths=0)
-            axes.set_title(f"{title} ({len(xyz):,} pts)", fontsize="small")
+            axes.set_title(f"{title} ({len(xyz):,} pts)" if len(xyz) else f"{title}: no points here", fontsize="small")
             axes.set_aspect("equal")
             axes.set_xticks([])
             axes.set_yticks([])
