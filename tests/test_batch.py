@@ -47,13 +47,18 @@ def test_folder_batch_records_each_scan_and_reruns_only_what_failed(scans, tmp_p
     assert [e["event"] for e in events(second.stdout)] == ["skipped", "skipped", "started", "done", "batch"]
 
 
-def test_toml_job_list_with_defaults_and_per_job_settings(scans, tmp_path):
-    jobs = tmp_path / "jobs.toml"
-    jobs.write_text(f'[defaults]\nratio = 0.1\nmethod = "fps"\nworkers = 1\nout_dir = "small"\n'
-                    f'[[job]]\ninput = "{scans}/a.las"\n'
-                    f'[[job]]\ninput = ["{scans}/a.las", "{scans}/b.las"]\noutput = "merged.laz"\nratio = 0.5\n')
-    result = cli("batch", str(jobs))
+def batch_of(tmp_path: Path, defaults: str, jobs: str):
+    """`pipeline batch` on a jobs.toml of fps jobs on one worker, writing to small/ unless a job says."""
+    path = tmp_path / "jobs.toml"
+    path.write_text(f'[defaults]\n{defaults}method = "fps"\nworkers = 1\nout_dir = "small"\n{jobs}')
+    result = cli("batch", str(path))
     assert result.returncode == 0, result.stderr
+    return result
+
+
+def test_toml_job_list_with_defaults_and_per_job_settings(scans, tmp_path):
+    result = batch_of(tmp_path, "ratio = 0.1\n", f'[[job]]\ninput = "{scans}/a.las"\n[[job]]\ninput = '
+                      f'["{scans}/a.las", "{scans}/b.las"]\noutput = "merged.laz"\nratio = 0.5\n')
     assert len(laspy.read(tmp_path / "small" / "a.simplified.las").points) == 300
     assert len(laspy.read(tmp_path / "merged.laz").points) == 2_500
     assert json.loads((tmp_path / "jobs.manifest.json").read_text())[str(tmp_path / "merged.laz")]["status"] == "done"
@@ -63,12 +68,8 @@ def test_toml_job_list_with_defaults_and_per_job_settings(scans, tmp_path):
 def test_a_job_s_own_levels_replace_the_defaults_ratio(scans, tmp_path):
     """[defaults] ratio = 0.1 and one job's levels = [0.2, 0.1] failed the whole batch ('--ratio 0.1 disagrees
     with --levels'): a job's own ratio or levels replace the defaults' output size."""
-    jobs = tmp_path / "jobs.toml"
-    jobs.write_text(f'[defaults]\nratio = 0.05\nmethod = "fps"\nworkers = 1\nout_dir = "small"\n'
-                    f'[[job]]\ninput = "{scans}/a.las"\nlevels = [0.2, 0.1]\n'
-                    f'[[job]]\ninput = "{scans}/b.las"\n')
-    result = cli("batch", str(jobs))
-    assert result.returncode == 0, result.stderr
+    batch_of(tmp_path, "ratio = 0.05\n",
+             f'[[job]]\ninput = "{scans}/a.las"\nlevels = [0.2, 0.1]\n[[job]]\ninput = "{scans}/b.las"\n')
     counts = {p.name: len(laspy.read(p).points) for p in (tmp_path / "small").glob("*.las")}
     assert counts == {"a.simplified.r0.2.las": 600, "a.simplified.r0.1.las": 300, "b.simplified.las": 100}
 
