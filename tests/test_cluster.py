@@ -3,6 +3,7 @@ and determinism: the same output for 1, 2 and 4 local workers and for the cluste
 from __future__ import annotations
 
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -79,6 +80,19 @@ def test_cli_runs_on_the_cluster(scan, local_output, scheduler, tmp_path):
                             capture_output=True, text=True, cwd=REPO)
     assert result.returncode == 0, result.stderr
     np.testing.assert_array_equal(laspy.read(out).points.array, local_output)
+
+
+def test_relative_paths_reach_workers_started_in_another_folder(scan, local_output, scheduler, tmp_path):
+    """The workers run in their own folder (here the repository's), so an input, output and scratch folder named
+    relative to the caller's failed there ('cannot read ... corrupt?', a missing store): they go as whole paths."""
+    shutil.copy(scan, tmp_path / "in.laz")
+    (tmp_path / "scratch").mkdir()
+    result = subprocess.run([sys.executable, "-m", "pipeline.apps.cli", "run", "in.laz", "-o", "rel.laz", "--ratio",
+                             "0.1", "--method", "learned", "--tile-size", "8", "--seed", "3", "--scratch", "scratch",
+                             "--scheduler", scheduler], capture_output=True, text=True, cwd=tmp_path,
+                            env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert result.returncode == 0, result.stderr
+    np.testing.assert_array_equal(laspy.read(tmp_path / "rel.laz").points.array, local_output)
 
 
 def test_an_unreachable_scheduler_is_one_line(scan, tmp_path):

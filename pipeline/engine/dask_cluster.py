@@ -110,8 +110,10 @@ def quiet_dask_logs() -> None:
     if not any(isinstance(each, SyncCancelRace) for each in tornado_errors.filters):
         tornado_errors.addFilter(SyncCancelRace())
     logging.getLogger("distributed").setLevel(logging.ERROR)
-    for name in ("distributed.client", "distributed.gc"):  # Dask's config sets these to WARNING by name, so the
-        logging.getLogger(name).setLevel(logging.ERROR)     # parent's level does not reach them ("Couldn't gather")
+    logging.getLogger("distributed.gc").setLevel(logging.ERROR)  # Dask's config sets it to WARNING by name
+    # the client's warnings ("Couldn't gather 1 keys, rescheduling": a worker died mid-fetch) and errors (a
+    # lost scheduler's reconnect traceback): the run reports the failure itself, in one line
+    logging.getLogger("distributed.client").setLevel(logging.CRITICAL)
     logging.getLogger("distributed.worker").setLevel(logging.CRITICAL)
     logging.getLogger("distributed.scheduler").setLevel(logging.CRITICAL)  # "N workers died running task X": map_tasks says it
 

@@ -110,6 +110,9 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
                             "call it under `if __name__ == \"__main__\":`")
     clock = PhaseClock()
     config = config.validated()
+    if scheduler is not None or client is not None:  # workers elsewhere, started in other folders: whole paths
+        inputs, scratch = [Path(p).absolute() for p in inputs], Path(scratch).absolute() if scratch else None
+        output = Path(output).absolute() if output is not None else None
     scan = Scan(inputs)
     output = Path(output) if output is not None else default_output(scan.paths[0])
     outputs = written_paths(output, config.levels)
