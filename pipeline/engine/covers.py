@@ -56,6 +56,9 @@ def cover_floors(client: Client | Executor, plan: TilePlan, slices: list[list[Sl
     return floors
 
 
+COUNT_ROUNDS = 8  # rounds of counts a reference may take (one in every run measured but a 0.5 m tiling's: two)
+
+
 def fps_reference(client: Client | Executor, plan: TilePlan, slices: list[list[Slice]], surveys: list[TileSurvey],
                   sizes: np.ndarray, target: int, work: WorkDir, config: RunConfig, progress: Progress,
                   cache_bytes: int, cost: Callable[[CoverJob], int]) -> tuple[list[TileSurvey], float, frozenset[int]]:
@@ -69,19 +72,20 @@ def fps_reference(client: Client | Executor, plan: TilePlan, slices: list[list[S
     measured = np.array([len(survey.gaps) > 0 for survey in surveys])
     if not measured.any():
         return surveys, 0.0, frozenset()
-    least = surveyed_least(surveys)
-    below = max(last_over(least, target), 0)  # r* lies past this grid radius (or below the grid: its first)
-    short = np.flatnonzero(measured & (np.array([survey.covers[below] for survey in surveys]) < 0))
-    if len(short):
+    least, counted, surveys = surveyed_least(surveys), frozenset(), list(surveys)
+    for _ in range(COUNT_ROUNDS):  # a count can come out below the survey's placeholder (one more than it
+        # sampled) and move the bracket to a finer radius, where other tiles are then short: count those too
+        below = max(last_over(least, target), 0)  # r* lies past this grid radius (or below the grid: its first)
+        short = np.flatnonzero(measured & (np.array([survey.covers[below] for survey in surveys]) < 0))
+        if not len(short):
+            break
         jobs = [cover_job(plan, slices, surveys, radii, int(tile_id), tuple(radii), float(radii[below]), work, config,
                           cache_bytes, keep=True) for tile_id in short]
-        counted = map_tasks(client, count_cover, jobs, plan, desc="count covers", progress=progress, cost=cost)
-        surveys = list(surveys)
-        for tile_id, covers in zip(short, counted):
+        for tile_id, covers in zip(short, map_tasks(client, count_cover, jobs, plan, desc="count covers",
+                                                    progress=progress, cost=cost)):
             surveys[tile_id] = replace(surveys[tile_id], covers=covers)
-        least = surveyed_least(surveys)
+        least, counted = surveyed_least(surveys), counted | frozenset(short.tolist())
     picks = np.maximum(np.rint(one_radius_counts(least, target)), 1).astype(np.int64)
-    counted = frozenset(short.tolist())
     tiles = np.flatnonzero(measured)
     jobs = [ReferenceJob(kept_picks(work, int(tile_id), counted), int(picks[tile_id])) for tile_id in tiles]
     squares = np.array(map_tasks(client, reference_square, jobs, desc="measure reference", progress=progress))
