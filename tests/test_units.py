@@ -77,3 +77,14 @@ def test_info_and_eval_say_the_unit_and_eval_refuses_mixed_units(tmp_path):
     assert scored.exit_code == 0 and "Hausdorff in US survey foot, CD (squared distances) in square US survey foot" in scored.stdout
     mixed = runner.invoke(cli, ["eval", str(tmp_path / "ft.las"), str(tmp_path / "m.las")])
     assert mixed.exit_code == 2 and "in metre" in mixed.stderr and "in US survey foot" in mixed.stderr
+
+
+def test_eval_refuses_a_candidate_in_another_crs_of_the_same_unit(tmp_path):
+    """The same coordinates in UTM zones 10N and 11N are places 700 km apart: scored as one, they came out
+    perfect. `run` refuses inputs in different CRSs; eval (and report, through it) now refuses them too."""
+    write_patch(tmp_path / "z10.las", 32610, 1.0, n=5_000)
+    write_patch(tmp_path / "z11.las", 32611, 1.0, n=5_000)
+    mixed = CliRunner().invoke(cli, ["eval", str(tmp_path / "z10.las"), str(tmp_path / "z11.las")])
+    assert mixed.exit_code == 2 and "UTM zone 11N" in mixed.stderr and "UTM zone 10N" in mixed.stderr, mixed.stderr
+    same = CliRunner().invoke(cli, ["eval", str(tmp_path / "z10.las"), str(tmp_path / "z10.las")])
+    assert same.exit_code == 0, same.stderr

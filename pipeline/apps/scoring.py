@@ -20,7 +20,8 @@ from model.metrics import Quality, quality
 from pipeline.apps.defaults import DEFAULT_SAMPLE
 from pipeline.errors import PipelineError
 from pipeline.io.crs import LengthUnit
-from pipeline.io.points import Cells, chunk_count, covering_grid, length_unit_of, load_xyz, point_count, xyz_chunks
+from pipeline.io.points import (Cells, chunk_count, covering_grid, crs_of, length_unit_of, load_xyz, point_count,
+                                xyz_chunks)
 from pipeline.progress import Progress
 
 SAMPLE_CELLS = 256
@@ -99,11 +100,16 @@ def load_sample(path: Path, cells: Cells | None,
 
 def score(reference: Reference, path: Path) -> Score:
     """Metrics of one candidate file against the prepared reference, on the same cells; a candidate whose
-    CRS is in another unit is refused (its distances would mix feet and metres)."""
+    CRS is in another unit (its distances would mix feet and metres) or is another CRS is refused."""
     unit = length_unit_of(path)
     if not (unit.assumed or reference.unit.assumed) and unit.name != reference.unit.name:
         raise PipelineError(f"{path}: its coordinates are in {unit.name} and {reference.path}'s in "
                             f"{reference.unit.name}: reproject one first (e.g. pdal translate with filters.reprojection)")
+    theirs, ours = crs_of(path), crs_of(reference.path)
+    if theirs is not None and ours is not None and not theirs.equals(ours, ignore_axis_order=True):
+        raise PipelineError(f"{path}: its CRS {theirs.name!r} is not {reference.path}'s ({ours.name!r}): the same "
+                            "coordinates mean other places; reproject one first (e.g. pdal translate with "
+                            "filters.reprojection)")
     xyz, scored = load_sample(path, reference.cells)
     evaluated = len(xyz) if scored is None else int(scored.sum())
     if evaluated == 0:

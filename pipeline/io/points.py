@@ -9,10 +9,11 @@ from typing import TYPE_CHECKING, Callable, Iterator
 import numpy as np
 
 from pipeline.errors import PipelineError
-from pipeline.io.crs import LengthUnit, crs_from_wkt, crs_length_unit, length_unit
+from pipeline.io.crs import LengthUnit, crs_from_wkt, crs_length_unit, length_unit, parsed_crs
 from pipeline.io.scan import Scan
 
 if TYPE_CHECKING:
+    import pyproj
     import zarr
 
 CHUNK = 1_000_000
@@ -67,6 +68,13 @@ def length_unit_of(path: Path) -> LengthUnit:
     if not _is_zarr(path):
         return length_unit(Scan([path]).header)
     return crs_length_unit(crs_from_wkt(zarr_group(path).attrs.get("crs_wkt")))
+
+
+def crs_of(path: Path) -> pyproj.CRS | None:
+    """A file's CRS as pyproj reads its header, or a zarr output's `crs_wkt` attribute; None without one."""
+    if not _is_zarr(path):
+        return parsed_crs(Scan([path]).header)
+    return crs_from_wkt(zarr_group(path).attrs.get("crs_wkt"))
 
 
 def chunk_count(path: Path) -> int:
