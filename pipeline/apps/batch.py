@@ -8,7 +8,7 @@ A job list is a folder (every LAS/LAZ/PLY file in it is one scan) or a TOML file
     [[job]]
     input = "a.laz"          # a path, or a list of paths that form one scan
     output = "small/a.laz"   # optional: <out_dir>/<stem>.simplified.<las|laz>
-    ratio = 0.05             # optional per-job settings
+    ratio = 0.05             # optional per-job settings (a job's ratio or levels replace the defaults' both)
 
 The manifest (JSON, rewritten atomically after each job) records per output: done (with counts and
 the run key) or failed (with the one-line error). A rerun skips jobs done with the same key whose
