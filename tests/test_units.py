@@ -88,3 +88,13 @@ def test_eval_refuses_a_candidate_in_another_crs_of_the_same_unit(tmp_path):
     assert mixed.exit_code == 2 and "UTM zone 11N" in mixed.stderr and "UTM zone 10N" in mixed.stderr, mixed.stderr
     same = CliRunner().invoke(cli, ["eval", str(tmp_path / "z10.las"), str(tmp_path / "z10.las")])
     assert same.exit_code == 0, same.stderr
+
+
+def test_a_geographic_label_on_coordinates_no_degree_can_take_is_metres_for_info_as_for_run(tmp_path):
+    """lone-star.laz declares WGS 84 on UTM-sized coordinates: the run takes them as metres (no degree check
+    fires), while `info` and `eval` said 'degree (assumed)'. All three now say metres, assumed."""
+    write_patch(tmp_path / "mislabelled.las", 4326, 1.0, n=5_000)  # x 1000-1060, y 2000-2030: not degrees
+    info = json.loads(CliRunner().invoke(cli, ["info", str(tmp_path / "mislabelled.las"), "--json"]).stdout)
+    assert info["horizontal_unit"] == "metre" and info["horizontal_unit_assumed"]
+    with pytest.warns(pipeline.PipelineNote, match="its coordinates are taken as metres"):
+        pipeline.run(tmp_path / "mislabelled.las", tmp_path / "out.las", ratio=0.1, method="fps", workers=1)

@@ -50,13 +50,19 @@ def degrees_reason(header: laspy.LasHeader) -> str | None:
     sub-metre-in-degrees grid), or None. Tile sizes, halos and neighbourhoods are in metres."""
     crs = parsed_crs(header)
     mins, maxs = np.asarray(header.mins, float), np.asarray(header.maxs, float)
-    in_range = mins[0] >= -180 and maxs[0] <= 180 and mins[1] >= -90 and maxs[1] <= 90
+    in_range = in_degree_range(header)
     if crs is not None:  # a geographic label on values no degree can take (lone-star: "WGS 84", UTM-sized) is wrong
         return f"its CRS {crs.name!r} is geographic (coordinates in degrees)" if crs.is_geographic and in_range else None
     if in_range and max(header.scales[0], header.scales[1]) <= DEGREE_SCALE:
         return (f"it has no CRS and its coordinates look like degrees (x {mins[0]:g}..{maxs[0]:g}, "
                 f"y {mins[1]:g}..{maxs[1]:g}, scale {header.scales[0]:g})")
     return None
+
+
+def in_degree_range(header: laspy.LasHeader) -> bool:
+    """Whether the header's x and y bounds are longitudes and latitudes (within +-180 and +-90)."""
+    mins, maxs = np.asarray(header.mins, float), np.asarray(header.maxs, float)
+    return bool(mins[0] >= -180 and maxs[0] <= 180 and mins[1] >= -90 and maxs[1] <= 90)
 
 
 def same_crs(first: laspy.LasHeader, second: laspy.LasHeader) -> bool:
@@ -105,8 +111,13 @@ class LengthUnit:
 
 
 def length_unit(header: laspy.LasHeader) -> LengthUnit:
-    """The header's horizontal length unit (see `crs_length_unit`)."""
-    return crs_length_unit(parsed_crs(header))
+    """The header's horizontal length unit (see `crs_length_unit`); metres, assumed, where a geographic CRS
+    labels values no degree can take (lone-star: "WGS 84" on UTM-sized coordinates), as the run treats them
+    (degrees_reason), so `info` and `eval` say what the run did."""
+    crs = parsed_crs(header)
+    if crs is not None and crs.is_geographic and not in_degree_range(header):
+        return LengthUnit("metre", 1.0, assumed=True)
+    return crs_length_unit(crs)
 
 
 def crs_length_unit(crs: pyproj.CRS | None) -> LengthUnit:
