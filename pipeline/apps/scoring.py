@@ -11,7 +11,7 @@ from __future__ import annotations
 
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Sequence
 
 import numpy as np
 
@@ -23,6 +23,9 @@ from pipeline.io.crs import LengthUnit
 from pipeline.io.points import (Cells, chunk_count, covering_grid, crs_of, length_unit_of, load_xyz, point_count,
                                 xyz_chunks)
 from pipeline.progress import Progress
+
+if TYPE_CHECKING:
+    import pyproj
 
 SAMPLE_CELLS = 256
 SAMPLE_MARGIN = 0.1  # of a cell side: how far around the sample cells both clouds are loaded
@@ -44,6 +47,7 @@ class Reference:
     features: PointFeatures
     scored: np.ndarray | None
     unit: LengthUnit  # the reference's horizontal unit: of Hausdorff, and squared of CD
+    crs: pyproj.CRS | None  # the reference's CRS, which every candidate must share (crs_of)
 
     @property
     def evaluated_points(self) -> int:
@@ -85,7 +89,8 @@ def prepare_reference(path: Path, sample: int = DEFAULT_SAMPLE, seed: int = 0,
         xyz, scored = load_sample(path, cells, lambda points: phase.update(1, points))
     centre = xyz.mean(axis=0)
     xyz = xyz - centre  # kd-trees and covariances on centred coordinates (DESIGN: traps)
-    return Reference(path, point_count(path), cells, centre, xyz, point_features(xyz), scored, length_unit_of(path))
+    return Reference(path, point_count(path), cells, centre, xyz, point_features(xyz), scored, length_unit_of(path),
+                     crs_of(path))
 
 
 def load_sample(path: Path, cells: Cells | None,
@@ -105,7 +110,7 @@ def score(reference: Reference, path: Path) -> Score:
     if not (unit.assumed or reference.unit.assumed) and unit.name != reference.unit.name:
         raise PipelineError(f"{path}: its coordinates are in {unit.name} and {reference.path}'s in "
                             f"{reference.unit.name}: reproject one first (e.g. pdal translate with filters.reprojection)")
-    theirs, ours = crs_of(path), crs_of(reference.path)
+    theirs, ours = crs_of(path), reference.crs
     if theirs is not None and ours is not None and not theirs.equals(ours, ignore_axis_order=True):
         raise PipelineError(f"{path}: its CRS {theirs.name!r} is not {reference.path}'s ({ours.name!r}): the same "
                             "coordinates mean other places; reproject one first (e.g. pdal translate with "
