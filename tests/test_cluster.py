@@ -7,6 +7,8 @@ import shutil
 import socket
 import subprocess
 import sys
+import threading
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Iterator
 
@@ -27,26 +29,35 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
+@contextmanager
+def dask_cluster(workers: int, *worker_options: str) -> Iterator[tuple[str, list[subprocess.Popen]]]:
+    """tcp:// address of a scheduler with `workers` single-threaded workers, all separate processes, and the
+    workers' processes."""
+    address = f"tcp://127.0.0.1:{free_port()}"
+    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
+    scheduler_process = subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
+                                          "--port", address.rsplit(":", 1)[1], "--no-dashboard"],
+                                         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    worker_processes = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads",
+                                          "1", "--no-dashboard", "--memory-limit", "2GB", *worker_options],
+                                         env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                        for _ in range(workers)]
+    try:
+        with Client(address, timeout="60s") as client:
+            client.wait_for_workers(workers, timeout=120)
+        yield address, worker_processes
+    finally:
+        for process in [scheduler_process, *worker_processes]:
+            process.terminate()
+        for process in [scheduler_process, *worker_processes]:
+            process.wait(timeout=60)
+
+
 @pytest.fixture(scope="module")
 def scheduler() -> Iterator[str]:
     """tcp:// address of a scheduler with two single-threaded workers, all separate processes."""
-    address = f"tcp://127.0.0.1:{free_port()}"
-    env = {**os.environ, "PYTHONPATH": str(REPO), "OMP_NUM_THREADS": "1"}
-    processes = [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_scheduler", "--host", "127.0.0.1",
-                                   "--port", address.rsplit(":", 1)[1], "--no-dashboard"],
-                                  env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
-    processes += [subprocess.Popen([sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1",
-                                    "--no-dashboard", "--memory-limit", "2GB"],
-                                   env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL) for _ in range(2)]
-    try:
-        with Client(address, timeout="60s") as client:
-            client.wait_for_workers(2, timeout=120)
+    with dask_cluster(2) as (address, _):
         yield address
-    finally:
-        for process in processes:
-            process.terminate()
-        for process in processes:
-            process.wait(timeout=60)
 
 
 @pytest.fixture(scope="module")
@@ -102,6 +113,32 @@ def test_an_unreachable_scheduler_is_one_line(scan, tmp_path):
     assert result.returncode == 2
     assert result.stderr.startswith("pipeline: error: tcp://127.0.0.1:") and len(result.stderr.splitlines()) == 1
     assert not (tmp_path / "x.laz").exists()
+
+
+def test_a_run_whose_workers_all_die_stops_and_says_why(scan, tmp_path, monkeypatch):
+    """Dask waits for ever for workers to come back (a scheduled job would hang): a run stops once its cluster
+    has had none for WORKER_WAIT_S and says so in one line, writing no output."""
+    from pipeline.engine import worker_watch
+    from pipeline.errors import PipelineError
+
+    monkeypatch.setattr(worker_watch, "WORKER_WAIT_S", 2.0)
+    out = tmp_path / "out.laz"
+    with dask_cluster(1, "--no-nanny") as (address, [worker]):
+        def kill_once_busy() -> None:
+            with Client(address, timeout="60s") as watcher:
+                while not any(watcher.processing().values()) and worker.poll() is None:
+                    threading.Event().wait(0.05)
+            worker.kill()
+
+        killer = threading.Thread(target=kill_once_busy)
+        killer.start()
+        try:
+            with pytest.raises(PipelineError, match=r": the Dask cluster has had no workers for 2 s \(") as error:
+                pipeline.run(scan, out, scheduler=address, **SETTINGS)
+        finally:
+            killer.join()
+    assert "\n" not in str(error.value)
+    assert not out.exists()
 
 
 def test_tasks_are_submitted_a_bounded_window_ahead_and_come_back_in_order(scheduler, monkeypatch):

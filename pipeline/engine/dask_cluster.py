@@ -15,6 +15,7 @@ import dask
 from dask.distributed import Client, LocalCluster, WorkerPlugin
 
 from pipeline.engine.allocator import map_large_arrays
+from pipeline.engine import worker_watch
 from pipeline.engine.threads import ONE_THREAD, local_workers
 from pipeline.errors import PipelineError
 
@@ -48,8 +49,9 @@ def local_cluster(workers: int, memory_limit: str) -> Iterator[Client]:
 
 
 @contextmanager
-def connect(scheduler: str, connect_s: float = 10.0, workers_s: float = 60.0) -> Iterator[Client]:
-    """A client on an existing dask.distributed cluster at `scheduler` (tcp://host:port) with a worker.
+def connect(scheduler: str, connect_s: float = 10.0) -> Iterator[Client]:
+    """A client on an existing dask.distributed cluster at `scheduler` (tcp://host:port) with a worker within
+    WORKER_WAIT_S.
 
     Its workers must import this package and see the inputs and the scratch folder at the same paths.
     """
@@ -61,7 +63,7 @@ def connect(scheduler: str, connect_s: float = 10.0, workers_s: float = 60.0) ->
         raise PipelineError(f"{scheduler}: cannot reach the Dask scheduler ({exc})") from exc
     with client:
         try:
-            client.wait_for_workers(1, timeout=workers_s)
+            client.wait_for_workers(1, timeout=worker_watch.WORKER_WAIT_S)
         except TimeoutError as exc:
             raise PipelineError(f"{scheduler}: the Dask scheduler has no workers") from exc
         client.register_plugin(WorkerSettings())

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any, Callable, ContextManager, Sequence
 import numpy as np
 
 from pipeline.engine.threads import in_process, local_workers
+from pipeline.engine.worker_watch import WorkerWatch
 from pipeline.errors import PipelineError
 from pipeline.progress import Progress
 
@@ -54,13 +55,28 @@ def map_tasks(client: Client | Executor, function: Callable, items: Sequence[Any
     """
     if isinstance(client, Executor):
         return _map_here(client, function, items, shared, desc, progress, weight, cost)
+    unfinished: dict[Any, int] = {}  # the futures not yet returned: the tasks' item positions, -1 for shared values
+    with WorkerWatch(client, lambda: list(unfinished.copy()), desc) as watch:
+        try:
+            return _map_on_cluster(client, function, items, shared, desc, progress, weight, cost, unfinished)
+        except Exception:
+            if watch.fired:
+                raise watch.error from None
+            raise
+
+
+def _map_on_cluster(client: Client, function: Callable, items: Sequence[Any], shared: tuple, desc: str,
+                    progress: Progress, weight: Callable[[Any], int], cost: Callable[[Any], int] | None,
+                    unfinished: dict[Any, int]) -> list[Any]:
+    """map_tasks on a Dask cluster, its unfinished futures in `unfinished` (a finished one is let go, so that
+    the cluster may free its result)."""
     from dask.distributed import as_completed as completed_futures
     from distributed.scheduler import KilledWorker
 
     shared_futures = [client.submit(_same, value, pure=False) for value in shared]
+    unfinished.update(dict.fromkeys(shared_futures, -1))
     if shared_futures:  # on every worker before any task runs: a busy worker is slow to send it
         client.replicate(shared_futures)
-    position: dict[str, int] = {}  # the unfinished tasks' item positions, by key
     results: list[Any] = [None] * len(items)
     running = completed_futures(loop=client.loop)
     window = Window(client)
@@ -68,9 +84,9 @@ def map_tasks(client: Client | Executor, function: Callable, items: Sequence[Any
 
     def top_up(submitted: int) -> int:
         """Submit the next items until the window is full; return how many are submitted in all."""
-        while submitted < len(items) and len(position) < window.size():
+        while submitted < len(items) and len(unfinished) - len(shared_futures) < window.size():
             future = client.submit(function, items[order[submitted]], *shared_futures, pure=False)
-            position[future.key] = int(order[submitted])
+            unfinished[future] = int(order[submitted])
             running.add(future)
             submitted += 1
         return submitted
@@ -92,7 +108,7 @@ def map_tasks(client: Client | Executor, function: Callable, items: Sequence[Any
                                         "of memory: raise --memory-limit or lower --max-tile-points (or --tile-size, "
                                         "if the run noted a sub-cell over that limit)") from None
                 raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
-            results[position.pop(future.key)] = result
+            results[unfinished.pop(future)] = result
             phase.update(1, weight(result))
             submitted = top_up(submitted)
     return results
