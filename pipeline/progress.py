@@ -58,7 +58,8 @@ class Progress:
             return
         share = f" ({100 * phase.done / phase.total:.0f} %)" if phase.total else ""
         speed = f", {rate:,.0f} points/s" if rate is not None else ""
-        when = f", done in {elapsed:.0f} s" if final else (f", about {eta:.0f} s left" if eta is not None else "")
+        ended = "done in" if phase.done >= phase.total else "stopped after"  # a failed or interrupted phase
+        when = f", {ended} {elapsed:.0f} s" if final else (f", about {eta:.0f} s left" if eta is not None else "")
         print(f"pipeline: {phase.desc}: {phase.done:,} of {phase.total:,} {phase.unit}s{share}{speed}{when}",
               file=self.stream or sys.stderr, flush=True)
 
