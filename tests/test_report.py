@@ -117,6 +117,26 @@ def test_region_parse() -> None:
     assert inside.tolist() == [True, True, False, False]
 
 
+def test_the_region_of_a_scan_along_one_line_holds_its_points(tmp_path: Path) -> None:
+    """A scan of one line along x (a wire, a kerb, a narrow corridor): the automatic region is a square of the
+    line's scale holding points, not a cell a few micrometres wide."""
+    from pipeline.apps.visual.report_region import find_region
+    from pipeline.io.points import covering_grid
+
+    grid = covering_grid(np.array([0.0, 5.0]), np.array([1000.0, 5.0]), 50)
+    assert grid.side == pytest.approx(20.0) and grid.shape == (50, 1)
+    x = np.linspace(0.0, 1000.0, 100_000)
+    line = tmp_path / "line.las"
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales, header.offsets = [0.001] * 3, [0.0] * 3
+    cloud = laspy.LasData(header)
+    cloud.x, cloud.y, cloud.z = x, np.full_like(x, 5.0), np.where(x > 500, np.sin(x), 0.0)
+    cloud.write(line)
+    region = find_region(line)
+    assert region.size == pytest.approx(200.0)
+    assert region.contains(np.column_stack([x, np.full_like(x, 5.0), x])).sum() > 1_000
+
+
 def test_compare_html(street_scan: Path, tmp_path: Path) -> None:
     """`pipeline compare --html` writes compare.html with a panel and a map per run, from the same code."""
     written = compare(street_scan, [0.2], ["random"], tmp_path, RunOptions(workers=1), sample=0, html=True)

@@ -49,9 +49,10 @@ class Cells:
 
 
 def covering_grid(low: np.ndarray, high: np.ndarray, cells: int) -> Cells:
-    """A grid of about `cells` square cells over the XY box [low, high], none chosen yet."""
+    """A grid of about `cells` square cells over the XY box [low, high], none chosen yet; at most `cells` along a
+    box thinner than a cell (a scan of one line along x or y), whose cells would otherwise shrink to nothing."""
     extent = np.maximum(high[:2] - low[:2], 1e-9)
-    side = float(np.sqrt(extent[0] * extent[1] / cells)) or 1.0
+    side = max(float(np.sqrt(extent[0] * extent[1] / cells)), float(extent.max()) / cells) or 1.0
     shape = tuple(int(v) for v in np.maximum(np.ceil(extent / side), 1))
     return Cells(np.asarray(low[:2], dtype=np.float64), side, shape, np.empty(0, dtype=np.int64))
 
