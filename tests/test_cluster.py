@@ -125,7 +125,8 @@ def test_a_run_whose_workers_all_die_stops_and_says_why(scan, tmp_path, monkeypa
     out = tmp_path / "out.laz"
     with dask_cluster(1, "--no-nanny") as (address, [worker]):
         def kill_once_busy() -> None:
-            with Client(address, timeout="60s") as watcher:
+            with Client(address, timeout="60s", set_as_default=False) as watcher:  # closed after the run's client:
+                # as the default it would restore the run's, leaving later tests' dask calls on a closed client
                 while not any(watcher.processing().values()) and worker.poll() is None:
                     threading.Event().wait(0.05)
             worker.kill()
