@@ -46,6 +46,17 @@ class Interrupted(KeyboardInterrupt):
         self.exit_code = exit_code
 
 
+STOPS: list[KeyboardInterrupt] = []  # the Ctrl-C and SIGTERM this process got, as the CLI's handlers raised them
+
+
+def raise_stop_behind(error: BaseException) -> None:
+    """Raise the Ctrl-C or SIGTERM this process got, if any, in place of `error`: a stop raised in a Python method
+    that a native library calls back (lazrs writing or reading through a Python file) comes back as that
+    library's error ('IoError: Failed to call write'), which would end the run in a traceback."""
+    if STOPS and not is_fatal_signal(error):
+        raise type(STOPS[-1])() from None
+
+
 def signal_exit_code(exc: KeyboardInterrupt) -> int:
     """130 after Ctrl-C, 143 after SIGTERM (128 + the signal number, as a shell reports it)."""
     return exc.exit_code if isinstance(exc, Interrupted) else 143 if isinstance(exc, Terminated) else 130

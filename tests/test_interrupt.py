@@ -138,3 +138,34 @@ def test_a_stop_before_a_client_call_starts_logs_no_dask_traceback(caplog):
         assert sync(runner.loop, asyncio.sleep, 0, "still running") == "still running"
     finally:
         runner.stop()
+
+
+def test_a_stop_inside_a_write_lazrs_calls_ends_as_a_stop(tmp_path, street_scan, monkeypatch):
+    """Ctrl-C landing in the Python file method that lazrs calls while it writes a LAZ comes back from lazrs as
+    'IoError: Failed to call write' (the run ended in a traceback, exit 1): the run reports the stop instead,
+    keeps its finished work and writes no output."""
+    import pipeline
+    from pipeline.apps import cli
+    from pipeline.errors import STOPS, Interrupted, signal_exit_code
+    from pipeline.io import writers
+
+    class CtrlCOnTheSecondWrite(writers.RecordingFile):
+        """The file a LAZ is written to, with Ctrl-C (the CLI's handler) landing in lazrs's second call."""
+
+        calls = 0
+
+        def write(self, data: bytes) -> int:
+            CtrlCOnTheSecondWrite.calls += 1
+            if CtrlCOnTheSecondWrite.calls == 2:
+                cli.raise_interrupted(signal.SIGINT, None)
+            return super().write(data)
+
+    monkeypatch.setattr(writers, "RecordingFile", CtrlCOnTheSecondWrite)
+    out = tmp_path / "out.laz"
+    try:
+        with pytest.raises(Interrupted, match="finished work kept") as stopped:
+            pipeline.run(street_scan, out, ratio=0.5, method="random", workers=1)  # many LAZ chunks
+    finally:
+        STOPS.clear()
+    assert signal_exit_code(stopped.value) == 130
+    assert CtrlCOnTheSecondWrite.calls >= 2 and not out.exists()  # the last: the buffer's flush as the file closes

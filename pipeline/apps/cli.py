@@ -21,7 +21,8 @@ from pipeline.apps.cli_extras import demo_command, train_command, train_detail_c
 from pipeline.apps.defaults import COLORS, DEFAULT_SAMPLE  # noqa: E402
 from pipeline.config import METHODS, build_config, parse_list, parse_parameters  # noqa: E402
 from pipeline.engine.stop_guard import STOP_GRACE_S  # noqa: E402
-from pipeline.errors import Interrupted, PipelineError, Terminated, file_system_error, signal_exit_code  # noqa: E402
+from pipeline.errors import (STOPS, Interrupted, PipelineError, Terminated, file_system_error,  # noqa: E402
+                             signal_exit_code)
 from pipeline.progress import Progress  # noqa: E402
 from pipeline.version import __version__  # noqa: E402
 
@@ -35,6 +36,7 @@ class OneLineErrors(click.Group):
 
     def invoke(self, ctx: click.Context):
         signal.signal(signal.SIGTERM, raise_terminated)
+        signal.signal(signal.SIGINT, raise_interrupted)
         try:
             return super().invoke(ctx)
         except (PipelineError, OSError) as exc:
@@ -44,6 +46,11 @@ class OneLineErrors(click.Group):
         except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: one line, the shell's exit code, no traceback
             click.echo(f"pipeline: {exc if isinstance(exc, Interrupted) else 'interrupted'}", err=True)
             sys.exit(signal_exit_code(exc))
+        except Exception:  # a library's error from a stop raised inside its call (see raise_stop_behind)
+            if not STOPS:
+                raise
+            click.echo("pipeline: interrupted", err=True)
+            sys.exit(signal_exit_code(STOPS[-1]))
 
 
 def note_worker_cap(workers: int, scheduler: str | None) -> None:
@@ -57,9 +64,16 @@ def note_worker_cap(workers: int, scheduler: str | None) -> None:
 
 def raise_terminated(signum: int, frame: object) -> None:
     """SIGTERM unwinds the run as Ctrl-C does (the work folder kept, the cluster closed); a second one is
-    ignored while that happens."""
+    ignored while that happens. Recorded in STOPS, as Ctrl-C is."""
     signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    raise Terminated()
+    STOPS.append(Terminated())
+    raise STOPS[-1]
+
+
+def raise_interrupted(signum: int, frame: object) -> None:
+    """Ctrl-C raises KeyboardInterrupt, as Python's own handler does, and records it in STOPS."""
+    STOPS.append(KeyboardInterrupt())
+    raise STOPS[-1]
 
 
 @click.group(cls=OneLineErrors, context_settings={"help_option_names": ["-h", "--help"], "max_content_width": 100})

@@ -16,7 +16,7 @@ import laspy
 import lazrs
 import numpy as np
 
-from pipeline.errors import PipelineError, is_fatal_signal
+from pipeline.errors import PipelineError, is_fatal_signal, raise_stop_behind
 from pipeline.io.validate import (LAS_PREAMBLE_BYTES, VARIABLE_CHUNKS, check_las_header, check_las_layout,
                                   check_las_preamble)
 
@@ -156,6 +156,7 @@ class LasSource:
         except BaseException as exc:  # lazrs raises PanicException, a BaseException
             if is_fatal_signal(exc):
                 raise
+            raise_stop_behind(exc)  # not a corrupt file: Ctrl-C landed in a read lazrs called
             raise describe_failure(self.path, exc) from None
         if len(records) != count:
             raise PipelineError(f"{self.path}: header says {self.point_count} points but the data ends before "

@@ -8,7 +8,7 @@ from typing import Iterable, Iterator
 import laspy
 import numpy as np
 
-from pipeline.errors import PipelineError, file_system_error
+from pipeline.errors import PipelineError, file_system_error, raise_stop_behind
 from pipeline.io.atomic import atomic_output
 from pipeline.io.copc_output import write_copc
 from pipeline.io.output_meta import OutputMeta
@@ -101,8 +101,9 @@ def _write_las(path: Path, header: laspy.LasHeader, parts: Iterable[TilePart], c
                 written += len(batch)
             if evlrs:
                 writer.write_evlrs(evlrs)
-    except Exception:
+    except Exception as exc:
         if raw.error is not None:
             raise raw.error from None
+        raise_stop_behind(exc)
         raise
     return written
