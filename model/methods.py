@@ -7,6 +7,7 @@ and an output's provenance read the fields, so a parameter added here needs no o
 """
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any, ClassVar
@@ -14,7 +15,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from model.baselines import VOXEL_COUNT_SLACK, fps_simplify, random_simplify, tcp_simplify, voxel_simplify
-from model.detail import predicted_fill_loss
+from model.detail import DESCRIPTORS, load_detail_weights, predicted_fill_loss
 from model.learning import DETAIL_WEIGHTS, PAPER_WEIGHTS
 from model.selection import FillLoss, Selection, Tile
 from model.stratified import CHAMFER_BOUND, COVER_SPACINGS, measured_loss, no_loss, stratified_selection
@@ -55,6 +56,11 @@ class Method:
         so equal settings give equal methods."""
         if isinstance(getattr(self, "weights", None), (str, Path)):
             object.__setattr__(self, "weights", checked_weights(getattr(self, "weights")))
+            self.check_weights(getattr(self, "weights"))
+
+    def check_weights(self, path: Path) -> None:
+        """Raise ValueError if the file at `path` is not the kind of weights this method reads (a method with a
+        `weights` field says which), so a wrong file fails before any work, not in the first tile."""
 
     def trained_weights(self) -> Path | None:
         """The file of trained weights the method runs on, its `weights` field if it has one (an output's
@@ -191,6 +197,13 @@ class Learned(DetailFill):
     def fill_loss(self, tile: Tile, budget: int) -> FillLoss:
         return predicted_fill_loss(tile, budget, self.weights)
 
+    def check_weights(self, path: Path) -> None:
+        try:  # one prediction: the arrays' names and shapes as the predictor reads them
+            load_detail_weights(path).predict(np.zeros((1, DESCRIPTORS), dtype=np.float32))
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile) as exc:
+            raise ValueError(f"parameter 'weights': {path} is not the detail predictor's weights (an .npz written "
+                             f"by `pipeline train-detail`): {exc}") from None
+
 
 @dataclass(frozen=True)
 class Paper(Method):
@@ -216,6 +229,11 @@ class Paper(Method):
 
     def keeps_positions(self) -> bool:
         return not self.refine
+
+    def check_weights(self, path: Path) -> None:
+        if not zipfile.is_zipfile(path) or not any(name.endswith("data.pkl") for name in zipfile.ZipFile(path).namelist()):
+            raise ValueError(f"parameter 'weights': {path} is not a torch checkpoint of the paper's network (a .pt "
+                             "written by `pipeline train`)")
 
 
 def checked_weights(path: Path | str) -> Path:

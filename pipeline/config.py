@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import numbers
 import re
 import tomllib
 from dataclasses import dataclass, fields, replace
@@ -77,6 +78,8 @@ class RunConfig:
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0) or (name == "tile_size" and value <= 0):
                 raise PipelineError(f"--{name.replace('_', '-')} must be a positive number of metres, got {value!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, numbers.Integral) or self.seed < 0:
+            raise PipelineError(f"--seed must be a whole number, 0 or more, got {self.seed!r}")
         if int(self.in_process_points) < 0:
             raise PipelineError(f"in-process-points must be 0 (never) or more, got {self.in_process_points!r}")
         for name in ("max_tile_points", "workers", "chunk_points"):

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import pipeline
+from model.learning import DETAIL_WEIGHTS, PAPER_WEIGHTS
 from model.methods import Paper, Voxel
 from model.registry import REGISTERED, get_simplifier, method_name
 from pipeline.config import build_config
@@ -47,6 +48,11 @@ def test_parameters_from_a_config_table_the_api_and_an_object(tmp_path):
      "parameter 'chamfer_bound' must be a positive number, got 0.0"),
     ('[method.voxl]\nslack = 0.1\n', "[method.voxl]: unknown method"),
     ('[method]\nslack = 0.1\n', "[method] must hold one table per method"),
+    (f'[run]\nmethod = "learned"\n[method.learned]\nweights = "{PAPER_WEIGHTS}"\n',
+     f"{PAPER_WEIGHTS} is not the detail predictor's weights"),  # not in the first tile, after the work began
+    (f'[run]\nmethod = "paper"\n[method.paper]\nweights = "{DETAIL_WEIGHTS}"\n',
+     f"{DETAIL_WEIGHTS} is not a torch checkpoint of the paper's network"),
+    ('[run]\nseed = -1\n', "--seed must be a whole number, 0 or more, got -1"),
 ])
 def test_a_bad_parameter_is_one_line(tmp_path, text, message):
     path = tmp_path / "run.toml"
