@@ -78,7 +78,7 @@ def evaluate(reference: str | Path, candidates: Sequence[str | Path], sample: in
     reference points in whole grid cells; 0: every point); Hausdorff in `Reference.unit`, CD (mean squared distances) in its square."""
     from pipeline.apps.scoring import evaluate as evaluate_files
 
-    return evaluate_files(Path(reference), [Path(c) for c in candidates], sample, seed)
+    return evaluate_files(Path(reference), [Path(c) for c in listed(candidates, (str, Path))], sample, seed)
 
 
 def compare(source: str | Path, ratios: Sequence[float] = (0.2, 0.1, 0.05),
@@ -88,5 +88,11 @@ def compare(source: str | Path, ratios: Sequence[float] = (0.2, 0.1, 0.05),
     table, JSON, plots and pictures to `out_dir`; return the files written."""
     from pipeline.apps.comparison import RunOptions, compare as compare_methods
 
-    return compare_methods(Path(source), list(ratios), list(methods), Path(out_dir),
+    return compare_methods(Path(source), listed(ratios, (int, float, str)), listed(methods, (str,)), Path(out_dir),
                            RunOptions(workers=workers, seed=seed), sample)
+
+
+def listed(values: Any, single: tuple[type, ...]) -> list[Any]:
+    """A sequence argument as a list; one value of a `single` type (a path, a ratio, a method name) as a list of
+    it, not of its characters."""
+    return [values] if isinstance(values, single) else list(values)

@@ -232,16 +232,20 @@ def build_config(config: str | None = None, *, method: str | Method | None = Non
     defaults, then the file's [method.<name>] table, then the object's, then `method_parameters`."""
     base = RunConfig()
     settings, method_tables = load_settings(config)
-    settings.update({k: plain_numbers(v) for k, v in overrides.items() if v is not None})
+    given = {k: plain_numbers(v) for k, v in overrides.items() if v is not None}
+    checked_settings({k: list(v) if isinstance(v, tuple) else v for k, v in given.items()}, "keyword argument")
+    if method_parameters is not None and not isinstance(method_parameters, dict):
+        raise PipelineError(f"method_parameters must be a dict of name: value, got {method_parameters!r}")
+    settings.update(given)
     settings = {k: tuple(v) if isinstance(v, list) else v for k, v in settings.items()}
-    given: dict[str, Any] = {}
+    changed: dict[str, Any] = {}
     if isinstance(method, Method):
         settings["method"] = method_name(method)
-        given = changed_parameters(settings["method"], method)
+        changed = changed_parameters(settings["method"], method)
     elif method is not None:
         settings["method"] = method
     name = settings.get("method", base.method)
-    parameters = {**method_tables.get(name, {}), **given, **(method_parameters or {})}
+    parameters = {**method_tables.get(name, {}), **changed, **(method_parameters or {})}
     settings["method_parameters"] = tuple(sorted(parameters.items()))
     if settings.get("levels") and "ratio" not in settings:  # the first level is the ratio the run simplifies to
         settings["ratio"] = settings["levels"][0]

@@ -2,6 +2,8 @@
 points, in a progressive order; a caller's Dask client is reused, not replaced."""
 from __future__ import annotations
 
+import re
+
 import laspy
 import numpy as np
 import pytest
@@ -114,3 +116,36 @@ def test_numpy_numbers_are_taken_as_python_s(tmp_path):
 def test_an_empty_cloud_is_refused_naming_the_cloud_not_a_temporary_file():
     with pytest.raises(pipeline.PipelineError, match="^points: the array holds no points"):
         pipeline.simplify(np.empty((0, 3)), 0.1)
+
+
+@pytest.mark.parametrize("settings, said", [
+    (dict(workers="2"), "workers must be a whole number, got '2'"),
+    (dict(workers=2.5), "workers must be a whole number, got 2.5"),
+    (dict(ratio=True), "ratio must be a number, got True"),
+    (dict(levels=0.2), "levels must be a list of numbers, got 0.2"),
+    (dict(allow_geographic="no"), "allow_geographic must be true or false, got 'no'"),  # "no" is truthy
+    (dict(method_parameters=[("slack", 0.5)]), "method_parameters must be a dict of name: value"),
+    (dict(seed=1.5), "seed must be a whole number, got 1.5"),
+    (dict(seed=-1), "--seed must be a whole number, 0 or more, got -1"),
+])
+def test_keyword_arguments_of_the_wrong_type_fail_before_any_work(tmp_path, street_scan, settings, said):
+    """The API's settings are checked as a config file's are: a wrong type is one line, not a TypeError deep in
+    the run, nor a value taken for another ("no" for True)."""
+    out = tmp_path / "out.laz"
+    with pytest.raises(pipeline.PipelineError, match=re.escape(said)) as caught:
+        pipeline.run(street_scan, out, **{"ratio": 0.1, **settings})
+    assert "\n" not in str(caught.value) and not out.exists()
+
+
+def test_evaluate_and_compare_take_one_path_ratio_or_method_and_check_them_first(tmp_path, street_scan):
+    """One candidate path, one ratio, one method name are taken as one (a string was read as its characters);
+    a ratio that keeps no point or a negative sample fails before the first run."""
+    out = tmp_path / "out.laz"
+    pipeline.run(street_scan, out, ratio=0.1, method="random", workers=1)
+    _, scores = pipeline.evaluate(street_scan, str(out), sample=0)
+    assert [score.path for score in scores] == [out]
+    with pytest.raises(pipeline.PipelineError, match="--sample must be a whole number"):
+        pipeline.evaluate(street_scan, [out], sample=-5)
+    with pytest.raises(pipeline.PipelineError, match="--ratio 1e-09 keeps 0 of"):
+        pipeline.compare(street_scan, ratios=(0.1, 1e-9), methods="random", out_dir=tmp_path / "compare")
+    assert not (tmp_path / "compare" / "runs").exists()

@@ -123,17 +123,23 @@ def test_compare_writes_table_json_and_plots(tmp_path):
         assert matplotlib.image.imread(png).ndim == 3
 
 
-def write_line_scan(path: Path, n: int = 20_000) -> Path:
-    """`n` points along a straight 500 m line in UTM 10N: the pictured region is a sliver holding a point or so."""
+def write_line_scan(path: Path, x: np.ndarray) -> Path:
+    """Points at `x` along a straight line in UTM 10N, with random heights."""
     header = laspy.LasHeader(point_format=3, version="1.4")
     header.add_crs(pyproj.CRS.from_epsg(32610))
     las = laspy.LasData(header)
-    las.x, las.y, las.z = np.linspace(0, 500, n), np.full(n, 3.0), np.random.default_rng(6).uniform(0, 1, n)
+    las.x, las.y, las.z = x, np.full(len(x), 3.0), np.random.default_rng(6).uniform(0, 1, len(x))
     las.write(path)
     return path
 
 
 def test_compare_pictures_a_result_with_no_point_in_the_region(tmp_path, monkeypatch):
+    """A result none of whose points lies in the pictured region (the reference's most curved cell) gets an
+    empty panel, not a failure: a 500 m line of 200k points pictured in a 50 m cell, a result of two points
+    beyond it."""
+    from pipeline.apps.comparison import Entry, write_region
+    from pipeline.apps.scoring import prepare_reference, score
+
     shown = []  # the result panels region_view drew: (xyz, curvature) by (method, ratio)
     real_view = pipeline.apps.comparison.region_view
 
@@ -142,13 +148,15 @@ def test_compare_pictures_a_result_with_no_point_in_the_region(tmp_path, monkeyp
         return real_view(reference, panels, *args)
 
     monkeypatch.setattr(pipeline.apps.comparison, "region_view", recording_view)
-    source = write_line_scan(tmp_path / "line.las")
-    result = run_cli("compare", str(source), "--ratios", "0.0001", "--methods", "random", "--workers", "1",
-                     "--out-dir", str(tmp_path / "out"))
-    assert result.exit_code == 0, result.output
-    assert result.exception is None
-    xyz, curvature = shown[0][("random", 0.0001)]
-    assert len(xyz) == len(curvature) == 0  # 2 points kept, none in the sliver: an empty panel
-    assert (tmp_path / "out" / "region.png").read_bytes()[:8] == PNG_SIGNATURE
+    reference = prepare_reference(write_line_scan(tmp_path / "line.las", np.linspace(0, 500, 200_000)), 0, 0,
+                                  pipeline.progress.Progress())
+    region = pipeline.apps.comparison.detailed_region(reference)
+    cell_x = region.origin[0] + region.side * (int(region.chosen[0]) // region.shape[1])  # the cell's west edge
+    outside = cell_x + region.side * (1.5 if cell_x + region.side * 1.5 < 500 else -0.5)
+    result = write_line_scan(tmp_path / "two.las", np.array([outside, outside + 0.1]))
+    written = write_region(reference, [Entry("random", 1e-5, score(reference, result))], ["random"], [1e-5], tmp_path)
+    xyz, curvature = shown[0][("random", 1e-5)]
+    assert len(xyz) == len(curvature) == 0
+    assert written.read_bytes()[:8] == PNG_SIGNATURE
     for n in (0, 1, 2):  # too few points for a neighbourhood still give a curvature per point
         assert pipeline.apps.comparison.region_curvature(np.random.default_rng(n).uniform(size=(n, 3))).shape == (n,)

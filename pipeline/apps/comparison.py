@@ -16,17 +16,18 @@ from typing import TYPE_CHECKING, Callable, Sequence
 import numpy as np
 
 from model.geometry import point_features
+from model.rules import kept_count
 from model.registry import METHODS
 from pipeline.apps.defaults import DEFAULT_SAMPLE
 from pipeline.apps.report import density_png_path, render_report
-from pipeline.apps.scoring import (METRIC_COLUMNS, Reference, Score, markdown_table, metric_cells, prepare_reference,
-                                   reference_json, sample_note, score, score_json)
+from pipeline.apps.scoring import (METRIC_COLUMNS, Reference, Score, check_sample, markdown_table, metric_cells,
+                                   prepare_reference, reference_json, sample_note, score, score_json)
 from pipeline.apps.visual.plots import Panel, metric_plot, region_view
 from pipeline.config import build_config
 from pipeline.engine.execute import cluster
 from pipeline.engine.runner import run_scan
 from pipeline.errors import PipelineError
-from pipeline.io.points import Cells, covering_grid, load_xyz
+from pipeline.io.points import Cells, covering_grid, load_xyz, point_count
 from pipeline.progress import Progress
 
 if TYPE_CHECKING:
@@ -97,6 +98,11 @@ def compare(source: Path, ratios: Sequence[float], methods: Sequence[str], out_d
         raise PipelineError(f"unknown method(s) {', '.join(unknown)}; known: {', '.join(PRODUCERS)}")
     if not source.exists():
         raise PipelineError(f"{source}: no such file")
+    check_sample(sample)
+    points = point_count(source)
+    for ratio in ratios:  # every run's settings checked before the first run
+        if kept_count(build_config(ratio=ratio).ratio, points) == 0:
+            raise PipelineError(f"{source}: --ratio {ratio} keeps 0 of {points} points")
     runs = out_dir / "runs"
     runs.mkdir(parents=True, exist_ok=True)
     reference = prepare_reference(source, sample, options.seed, options.progress)

@@ -9,6 +9,7 @@ scores every point.
 """
 from __future__ import annotations
 
+import numbers
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Sequence
@@ -63,6 +64,12 @@ class Score:
     points: int
     evaluated_points: int
     quality: Quality
+
+
+def check_sample(sample: int) -> None:
+    """--sample is a number of reference points, 0 for every point."""
+    if isinstance(sample, bool) or not isinstance(sample, numbers.Integral) or sample < 0:
+        raise PipelineError(f"--sample must be a whole number of points, 0 (every point) or more, got {sample!r}")
 
 
 def sample_cells(path: Path, sample: int, seed: int,
@@ -126,6 +133,7 @@ def score(reference: Reference, path: Path) -> Score:
 def evaluate(reference_path: Path, candidates: Sequence[Path], sample: int = DEFAULT_SAMPLE,
              seed: int = 0, progress: Progress = Progress()) -> tuple[Reference, list[Score]]:
     """Prepare the reference once, then score every candidate against it."""
+    check_sample(sample)
     for path in (reference_path, *candidates):
         if not path.exists():
             raise PipelineError(f"{path}: no such file")
