@@ -149,3 +149,24 @@ def test_evaluate_and_compare_take_one_path_ratio_or_method_and_check_them_first
     with pytest.raises(pipeline.PipelineError, match="--ratio 1e-09 keeps 0 of"):
         pipeline.compare(street_scan, ratios=(0.1, 1e-9), methods="random", out_dir=tmp_path / "compare")
     assert not (tmp_path / "compare" / "runs").exists()
+
+
+def test_simplify_reads_a_crs_held_in_an_evlr(tmp_path, client):
+    """LAS 1.4 may hold its WKT in an extended VLR: simplify of the LasData takes its unit (feet) as run does
+    on the file, so both cut the same tiles and keep the same points (the EVLR was dropped: metres assumed)."""
+    from laspy.vlrs.vlrlist import VLRList
+
+    from tests.test_units import write_patch
+
+    write_patch(tmp_path / "feet.las", 2992, 0.3048)
+    las = laspy.read(tmp_path / "feet.las")
+    las.header.evlrs = VLRList([v for v in las.header.vlrs if v.user_id == "LASF_Projection"])
+    las.header.vlrs = VLRList([v for v in las.header.vlrs if v.user_id != "LASF_Projection"])
+    las.write(tmp_path / "evlr.las")
+    las = laspy.read(tmp_path / "evlr.las")
+    assert not las.header.vlrs.get("WktCoordinateSystemVlr") and las.header.evlrs
+    settings = dict(method="fps", tile_size=20.0, client=client)
+    with pytest.warns(pipeline.PipelineNote, match="the scan is in foot"):
+        pipeline.run(tmp_path / "evlr.las", tmp_path / "out.las", ratio=0.1, **settings)
+    kept = pipeline.simplify(las, 0.1, **settings)
+    assert record_set(las.points.array[kept]) == record_set(laspy.read(tmp_path / "out.las").points.array)

@@ -62,7 +62,8 @@ def _write_indexed(points: np.ndarray | laspy.LasData, path: Path) -> None:
     if isinstance(points, laspy.LasData):
         header = laspy.LasHeader(version=points.header.version, point_format=copy.deepcopy(points.header.point_format))
         header.scales, header.offsets = points.header.scales, points.header.offsets
-        header.vlrs.extend(v for v in points.header.vlrs if v.user_id == "LASF_Projection")
+        crs_records = [*points.header.vlrs, *(points.header.evlrs or [])]  # LAS 1.4 may hold its WKT in an EVLR
+        header.vlrs.extend(v for v in crs_records if v.user_id == "LASF_Projection")
         records = points.points.array
         count = len(records)
         if count == 0:
