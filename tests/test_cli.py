@@ -185,6 +185,18 @@ def test_demo_simulates_and_simplifies(tmp_path):
     assert np.isin(np.asarray(simplified.gps_time), np.asarray(scan.gps_time)).all()
 
 
+def test_demo_checks_its_settings_first_and_simulates_again_for_another_size(tmp_path):
+    """--points 0 or a bad --ratio is one line before any simulation (a traceback, or after simulating 1.5M
+    points); a demo run with another --points simulates that size, one with the same reuses the scan."""
+    assert_one_line_error(cli("demo", "--out-dir", str(tmp_path), "--points", "0"), "--points must be 1 or more")
+    assert_one_line_error(cli("demo", "--out-dir", str(tmp_path), "--ratio", "2"), "--ratio must be in (0, 1]")
+    assert not (tmp_path / "demo_street.laz").exists()
+    for points, simulated in ((20_000, True), (30_000, True), (30_000, False)):
+        result = cli("demo", "--out-dir", str(tmp_path), "--points", str(points), "--workers", "1")
+        assert result.returncode == 0, result.stderr
+        assert ("simulating" in result.stdout) == simulated and f"of {points:,} points" in result.stdout
+
+
 def test_demo_flies_over_the_street_with_the_airborne_preset(tmp_path):
     """`--platform airborne` simulates the street from 80 m up and simplifies it with the airborne preset
     (100 m tiles: the whole 40k-point scan in one)."""

@@ -25,17 +25,30 @@ def demo_command(out_dir: Path, points: int, ratio: float, workers: int | None, 
     from pipeline.engine.runner import run_scan
     from pipeline.simulate import write_street_scan
 
+    if points < 1:
+        raise PipelineError(f"--points must be 1 or more, got {points}")
+    settings = build_config("toronto3d" if platform == "mobile" else "airborne", ratio=ratio, workers=workers)
     out_dir.mkdir(parents=True, exist_ok=True)
     stem = "demo_street" if platform == "mobile" else "demo_airborne"
     scan = out_dir / f"{stem}.laz"
-    if not scan.exists():
+    if demo_points(scan) != points:  # none yet, or one of another --points: simulated (again)
         click.echo(f"simulating {points:,} points of {platform} street scan -> {scan}")
         write_street_scan(scan, n_points=points, seed=0, platform=platform)
-    settings = build_config("toronto3d" if platform == "mobile" else "airborne", ratio=ratio, workers=workers)
     report = run_scan([scan], out_dir / f"{stem}.simplified.laz", settings, overwrite=True,
                       progress=Progress.for_terminal())
     click.echo(f"{report.output}: {report.output_points:,} of {report.input_points:,} points "
                f"({report.tiles} tiles, {report.seconds:.1f} s)")
+
+
+def demo_points(scan: Path) -> int | None:
+    """The points of an earlier demo's scan, as its header says; None if there is none (or it is unreadable)."""
+    import laspy
+
+    try:
+        with laspy.open(scan) as reader:
+            return int(reader.header.point_count)
+    except (OSError, laspy.LaspyException):
+        return None
 
 
 @click.command("train")
