@@ -40,6 +40,23 @@ def test_mesh_mode_writes_every_kept_vertex_and_triangles(tmp_path, sphere_off, 
     assert not list(tmp_path.glob(".*tmp*"))  # the temporary name was renamed away
 
 
+@pytest.mark.parametrize("shape, triangulated", [("flat", True), ("one point", False)])
+def test_a_flat_or_collapsed_mesh_is_simplified_not_a_qhull_traceback(tmp_path, shape, triangulated):
+    """A flat patch (terrain, a facade, a CAD face) is triangulated: Qhull cannot orient its normals over a
+    3-D Delaunay of coplanar points, so they are turned to one side of the plane; vertices all at one place
+    give the kept vertices and no triangle. Both were a Qhull traceback."""
+    grid = np.stack(np.meshgrid(np.arange(30.0), np.arange(30.0)), axis=-1).reshape(-1, 2)
+    vertices = np.column_stack([grid, np.zeros(len(grid))]) if shape == "flat" else np.ones((900, 3))
+    faces = np.array([[0, 1, 30], [1, 31, 30]])  # a mesh needs faces; ball pivoting makes its own
+    source, out = tmp_path / "patch.off", tmp_path / "out.ply"
+    trimesh.Trimesh(vertices, faces, process=False).export(source)
+    result = CliRunner().invoke(pipeline_cli, ["run", str(source), "-r", "0.2", "--mesh", "-m", "fps", "-o", str(out)])
+    assert result.exit_code == 0, result.output
+    mesh = trimesh.load(out, process=False)  # a PointCloud where no face was written
+    faces = len(getattr(mesh, "faces", ()))
+    assert len(mesh.vertices) == 180 and (faces > 180 if triangulated else faces == 0)
+
+
 def test_fps_mesh_vertices_are_source_vertices(tmp_path, sphere_off):
     out = tmp_path / "fps.obj"
     assert CliRunner().invoke(pipeline_cli, ["run", str(sphere_off), "-r", "0.2", "--mesh", "-m", "fps",

@@ -108,14 +108,24 @@ def ball_pivot(points: np.ndarray) -> np.ndarray:
     o3d = _open3d()
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     spacing = float(np.mean(cloud.compute_nearest_neighbor_distance()))
+    if not spacing > 0:  # every kept vertex at one place: no ball rolls over them, nothing to triangulate
+        return np.empty((0, 3), dtype=np.int64)
     neighbours = min(NORMAL_NEIGHBOURS, len(points) - 1)
     cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(neighbours))
-    cloud.orient_normals_consistent_tangent_plane(neighbours)
+    try:
+        cloud.orient_normals_consistent_tangent_plane(neighbours)
+    except RuntimeError:  # Qhull's 3-D Delaunay fails on flat points (a terrain patch, a facade, a CAD face):
+        cloud.orient_normals_to_align_with_direction(flattest_direction(points))  # one side of the plane for all
     radii = o3d.utility.DoubleVector([spacing * factor for factor in BALL_RADII])
     mesh = o3d.geometry.TriangleMesh.create_from_point_cloud_ball_pivoting(cloud, radii)
     if not np.array_equal(np.asarray(mesh.vertices), points):
         raise RuntimeError("ball pivoting re-ordered the points; triangle indices would not match")
     return np.asarray(mesh.triangles, dtype=np.int64).reshape(-1, 3)
+
+
+def flattest_direction(points: np.ndarray) -> np.ndarray:
+    """(3,) unit direction in which (m, 3) points spread least: a flat set's normal."""
+    return np.linalg.eigh(np.cov(points.T))[1][:, 0]
 
 
 def _open3d():
