@@ -160,3 +160,14 @@ def test_compare_pictures_a_result_with_no_point_in_the_region(tmp_path, monkeyp
     assert written.read_bytes()[:8] == PNG_SIGNATURE
     for n in (0, 1, 2):  # too few points for a neighbourhood still give a curvature per point
         assert pipeline.apps.comparison.region_curvature(np.random.default_rng(n).uniform(size=(n, 3))).shape == (n,)
+
+
+def test_a_candidate_away_from_the_reference_is_refused(tmp_path):
+    """A candidate whose points all lie away from the reference (another place, or another CRS where one file
+    has none) is refused in one line: its Chamfer distance would be the distance between the places."""
+    reference = write_line_scan(tmp_path / "line.las", np.linspace(0, 500, 2_000))
+    away = write_line_scan(tmp_path / "away.las", np.linspace(10_000, 10_500, 200))
+    with pytest.raises(pipeline.PipelineError, match="away.las: no points where .*line.las was evaluated"):
+        pipeline.evaluate(reference, [away], sample=0)
+    near = write_line_scan(tmp_path / "near.las", np.linspace(0, 500, 200))
+    assert pipeline.evaluate(reference, [near], sample=0)[1][0].points == 200

@@ -124,10 +124,19 @@ def score(reference: Reference, path: Path) -> Score:
                             "filters.reprojection)")
     xyz, scored = load_sample(path, reference.cells)
     evaluated = len(xyz) if scored is None else int(scored.sum())
-    if evaluated == 0:
-        raise PipelineError(f"{path}: no points where {reference.path} was evaluated")
+    if evaluated == 0 or not overlaps(reference.xyz, xyz - reference.centre):
+        crs_note = " (one of them has no CRS: are they in the same one?)" if (theirs is None) != (ours is None) else ""
+        raise PipelineError(f"{path}: no points where {reference.path} was evaluated{crs_note}")
     return Score(path, point_count(path), evaluated,
                  quality(reference.xyz, xyz - reference.centre, reference.features, reference.scored, scored))
+
+
+def overlaps(reference: np.ndarray, candidate: np.ndarray, margin: float = 0.01) -> bool:
+    """Whether the bounding boxes of two (n, 3) clouds meet, within `margin` of the reference's diagonal: a
+    simplification of the reference lies inside it; one that does not is another place (or CRS)."""
+    low, high = reference.min(axis=0), reference.max(axis=0)
+    reach = margin * float(np.linalg.norm(high - low))
+    return bool(((candidate.min(axis=0) <= high + reach) & (candidate.max(axis=0) >= low - reach)).all())
 
 
 def evaluate(reference_path: Path, candidates: Sequence[Path], sample: int = DEFAULT_SAMPLE,
