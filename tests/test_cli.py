@@ -94,6 +94,22 @@ def test_info_summary_and_json():
     assert summary["file_size"] == path.stat().st_size
 
 
+def test_info_describes_a_file_of_no_point(tmp_path):
+    """info describes a file of no point (it refused it as a run does)."""
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    laspy.LasData(header).write(tmp_path / "empty.las")
+    text = cli("info", str(tmp_path / "empty.las"))
+    assert text.returncode == 0 and "points:        0" in text.stdout and "classes:       none (no points)" in text.stdout
+    assert json.loads(cli("info", str(tmp_path / "empty.las"), "--json").stdout)["class_counts"] == {}
+
+
+def test_info_counts_the_points_of_a_file_whose_header_bounds_miss_them():
+    """A run measures such bounds anew and goes on; info refused the file."""
+    misbounded = shared_file("edge-cases/simple1_3.las")  # bounds written unscaled
+    summary = json.loads(cli("info", str(misbounded), "--json").stdout)
+    assert sum(summary["class_counts"].values()) == summary["points"] == 999
+
+
 def test_info_counts_classes_and_returns_from_the_points_and_reads_compression_from_the_header(tmp_path):
     """Counts come from the points, not the header's per-return counts; a LAZ file named .las is compressed."""
     header = laspy.LasHeader(version="1.4", point_format=6)

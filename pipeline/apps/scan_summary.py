@@ -12,20 +12,23 @@ import numpy as np
 from pipeline.engine.classes import class_histogram
 from pipeline.io.crs import axis_unit, crs_label, crs_wkt, length_unit, parsed_crs
 from pipeline.io.provenance import read_provenance
-from pipeline.io.scan import Scan, open_source
+from pipeline.io.scan import open_source
 
 COUNT_CHUNK = 2_000_000  # points decoded at a time while counting classes and returns
 
 
 def point_counts(path: Path) -> tuple[dict[int, int], dict[int, int]]:
-    """Points per classification code and per return number, counted in chunks over the whole file."""
-    scan = Scan([path])
+    """Points per classification code and per return number, counted in chunks over the whole file. The
+    records are decoded as a run decodes them, but not held to the header's bounds: a file whose bounds
+    are wrong (which a run measures anew) or that holds no point is described, not refused."""
+    source = open_source(path)
     classes = np.zeros(256, dtype=np.int64)
     returns = np.zeros(16, dtype=np.int64)
-    for piece in scan.pieces(COUNT_CHUNK):
-        records = scan.read(piece).records
+    for start in range(0, source.point_count, COUNT_CHUNK):
+        records = source.read(start, min(COUNT_CHUNK, source.point_count - start))
         classes += class_histogram(records)
-        returns += np.bincount(laspy.PackedPointRecord(records, scan.point_format)["return_number"], minlength=16)
+        returns += np.bincount(laspy.PackedPointRecord(records, source.header.point_format)["return_number"],
+                               minlength=16)
     return ({int(c): int(classes[c]) for c in np.flatnonzero(classes)},
             {int(r): int(returns[r]) for r in np.flatnonzero(returns)})
 
@@ -91,8 +94,10 @@ def format_summary(summary: dict[str, Any]) -> str:
         f"density:       {density}",
     ]
     if "class_counts" in summary:
-        lines.append("classes:       " + ", ".join(f"{c}: {n:,}" for c, n in summary["class_counts"].items()))
-        lines.append("returns:       " + ", ".join(f"{r}: {n:,}" for r, n in summary["return_counts"].items()))
+        lines.append("classes:       " + (", ".join(f"{c}: {n:,}" for c, n in summary["class_counts"].items())
+                                          or "none (no points)"))
+        lines.append("returns:       " + (", ".join(f"{r}: {n:,}" for r, n in summary["return_counts"].items())
+                                          or "none (no points)"))
     lines += [f"dimensions:    {', '.join(summary['dimensions'])}",
               f"VLRs:          {', '.join(summary['vlrs']) or 'none'}"]
     if summary["provenance"]:
