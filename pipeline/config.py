@@ -181,6 +181,11 @@ def load_settings(config: str | None) -> tuple[dict[str, Any], dict[str, dict[st
     unknown = sorted(set(methods) - set(METHODS))
     if unknown:
         raise PipelineError(f"{path}: [method.{unknown[0]}]: unknown method (known: {', '.join(METHODS)})")
+    for name, parameters in methods.items():  # every table, the run's method or not: a typo fails here
+        try:
+            get_simplifier(name, **parameters)
+        except ValueError as exc:
+            raise PipelineError(f"{path}: [method.{name}]: {exc}") from None
     return checked_settings(table, f"{path}: [run]"), methods
 
 

@@ -193,6 +193,18 @@ def test_config_preset_and_flags(tmp_path):
     assert "200 of 2,000 points" in result.stdout
 
 
+def test_a_config_file_may_give_the_ratio(tmp_path):
+    """--ratio (or --levels) is asked for unless the config file gives one ([run] ratio was a valid key that the
+    CLI could not use)."""
+    source = small_las(tmp_path / "in.las")
+    config = tmp_path / "mine.toml"
+    config.write_text('[run]\nmethod = "random"\nworkers = 1\nratio = 0.05\n')
+    result = cli("run", str(source), "--config", str(config), "-o", str(tmp_path / "o.laz"))
+    assert result.returncode == 0, result.stderr
+    assert "100 of 2,000 points" in result.stdout
+    assert_one_line_error(cli("run", str(source), "-o", str(tmp_path / "p.laz")), "give --ratio")
+
+
 def test_demo_simulates_and_simplifies(tmp_path):
     result = cli("demo", "--out-dir", str(tmp_path), "--points", "40000", "--workers", "1")
     assert result.returncode == 0, result.stderr

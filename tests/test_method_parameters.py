@@ -53,6 +53,9 @@ def test_parameters_from_a_config_table_the_api_and_an_object(tmp_path):
     (f'[run]\nmethod = "paper"\n[method.paper]\nweights = "{DETAIL_WEIGHTS}"\n',
      f"{DETAIL_WEIGHTS} is not a torch checkpoint of the paper's network"),
     ('[run]\nseed = -1\n', "--seed must be a whole number, 0 or more, got -1"),
+    ('[run]\nmethod = "fps"\n[method.voxel]\nslak = 0.1\n',  # a table the run does not use is checked too
+     "[method.voxel]: method 'voxel' has no parameter 'slak'"),
+    ('[method.voxel]\nslack = "x"\n', "run.toml: [method.voxel]: parameter 'slack' must be a number"),
 ])
 def test_a_bad_parameter_is_one_line(tmp_path, text, message):
     path = tmp_path / "run.toml"

@@ -19,7 +19,7 @@ import_laspy_lean()  # before the imports below, which bring laspy in
 import configs  # noqa: E402
 from pipeline.apps.cli_extras import demo_command, train_command, train_detail_command  # noqa: E402
 from pipeline.apps.defaults import COLORS, DEFAULT_SAMPLE  # noqa: E402
-from pipeline.config import METHODS, build_config, parse_list, parse_parameters  # noqa: E402
+from pipeline.config import METHODS, build_config, load_settings, parse_list, parse_parameters  # noqa: E402
 from pipeline.engine.stop_guard import STOP_GRACE_S  # noqa: E402
 from pipeline.errors import (STOPS, Interrupted, PipelineError, Terminated, file_system_error,  # noqa: E402
                              signal_exit_code)
@@ -144,8 +144,8 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
     from pipeline.engine.runner import run_scan
 
     try:
-        if ratio is None and levels is None:
-            raise PipelineError("give --ratio (the fraction of points to keep) or --levels")
+        if ratio is None and levels is None and not {"ratio", "levels"} & set(load_settings(config)[0]):
+            raise PipelineError("give --ratio (the fraction of points to keep) or --levels (or either in --config)")
         settings = build_config(config, ratio=ratio, method=method, method_parameters=parse_parameters(params),
                                 tile_size=tile_size, overlap=overlap,
                                 max_tile_points=max_tile_points, merge_tile_points=merge_tile_points,
