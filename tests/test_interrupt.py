@@ -169,3 +169,27 @@ def test_a_stop_inside_a_write_lazrs_calls_ends_as_a_stop(tmp_path, street_scan,
         STOPS.clear()
     assert signal_exit_code(stopped.value) == 130
     assert CtrlCOnTheSecondWrite.calls >= 2 and not out.exists()  # the last: the buffer's flush as the file closes
+
+
+def test_a_stop_a_library_swallows_still_ends_the_command_as_stopped(tmp_path, street_scan, monkeypatch):
+    """trimesh's optional imports catch BaseException, so a Ctrl-C landing there was lost and the command
+    ended with exit 0: the CLI remembers the stop and exits 130, saying the outputs are complete."""
+    from click.testing import CliRunner
+
+    from pipeline.apps import cli, scan_summary
+
+    summarize = scan_summary.summarize
+
+    def swallowing_summarize(*args, **kwargs):
+        try:
+            cli.raise_interrupted(signal.SIGINT, None)  # Ctrl-C, as the CLI's handler raises it
+        except BaseException:
+            pass  # a library that swallows it
+        return summarize(*args, **kwargs)
+
+    monkeypatch.setattr(scan_summary, "summarize", swallowing_summarize)
+    result = CliRunner().invoke(cli.cli, ["info", str(street_scan), "--header-only"])
+    assert result.exit_code == 130 and "its outputs are complete" in result.output
+    assert CliRunner().invoke(cli.cli, ["info", str(street_scan), "--header-only"]).exit_code == 130
+    monkeypatch.setattr(scan_summary, "summarize", summarize)
+    assert CliRunner().invoke(cli.cli, ["info", str(street_scan), "--header-only"]).exit_code == 0  # none left over

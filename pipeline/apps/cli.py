@@ -35,10 +35,15 @@ class OneLineErrors(click.Group):
     Ctrl-C and SIGTERM end in one line saying what was kept, exit 130 or 143."""
 
     def invoke(self, ctx: click.Context):
-        signal.signal(signal.SIGTERM, raise_terminated)
-        signal.signal(signal.SIGINT, raise_interrupted)
+        STOPS.clear()  # a command run in-process (click's test runner, a notebook) starts with none
+        previous = signal.signal(signal.SIGTERM, raise_terminated), signal.signal(signal.SIGINT, raise_interrupted)
         try:
-            return super().invoke(ctx)
+            result = super().invoke(ctx)
+            if STOPS:  # a library swallowed the stop (trimesh's optional imports catch BaseException) and work went on
+                click.echo("pipeline: interrupted, but not before the command had finished: its outputs are complete",
+                           err=True)
+                sys.exit(signal_exit_code(STOPS[-1]))
+            return result
         except (PipelineError, OSError) as exc:
             message = file_system_error(exc) if isinstance(exc, OSError) else exc
             click.echo(f"pipeline: error: {message}", err=True)
@@ -51,6 +56,9 @@ class OneLineErrors(click.Group):
                 raise
             click.echo("pipeline: interrupted", err=True)
             sys.exit(signal_exit_code(STOPS[-1]))
+        finally:
+            signal.signal(signal.SIGTERM, previous[0])
+            signal.signal(signal.SIGINT, previous[1])
 
 
 def note_worker_cap(workers: int, scheduler: str | None) -> None:

@@ -19,7 +19,7 @@ from model.methods import Method
 from model.rules import kept_count
 from model.selection import Tile
 from pipeline.config import RunConfig
-from pipeline.errors import PipelineError
+from pipeline.errors import PipelineError, raise_stop_behind
 from pipeline.io.atomic import atomic_output
 from pipeline.io.output_guard import check_output
 
@@ -133,5 +133,6 @@ def _open3d():
     try:
         import open3d
     except (ImportError, OSError) as exc:  # OSError: libusb-1.0 missing on a bare machine
+        raise_stop_behind(exc)  # Ctrl-C in open3d's start comes back as an ImportError
         raise PipelineError(f"mesh mode needs open3d: pip install 'lidar-simplify[mesh]' ({exc})") from None
     return open3d
