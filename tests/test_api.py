@@ -96,6 +96,24 @@ def test_a_runs_notes_reach_python_callers_as_warnings(tmp_path):
     with pytest.warns(pipeline.PipelineNote, match="no usable CRS: its coordinates are taken as metres"):
         report = pipeline.run(tmp_path / "no_crs.las", tmp_path / "out.las", ratio=0.1, method="random")
     assert report.output_points == 500
+    with pytest.warns(pipeline.PipelineNote, match="no usable CRS"):  # simplify dropped them
+        assert len(pipeline.simplify(las, 0.1, method="random")) == 500
+
+
+def test_simplify_speaks_of_the_points_and_reads_a_cloud_it_wrote_before(tmp_path):
+    """A failure names the caller's points, not the temporary file they went through (nor a work folder to
+    resume from that is gone with it); a LasData that already holds simplify's index dimension (read back
+    from a file of an earlier simplify) is simplified, not a ValueError."""
+    from pipeline.apps.in_memory import INDEX_DIMENSION
+
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.add_extra_dim(laspy.ExtraBytesParams(INDEX_DIMENSION, "u2"))
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = np.random.default_rng(3).uniform(0, 30, (3, 2_000))
+    with pytest.raises(pipeline.PipelineError, match=r"^the points: --ratio 1e-09 keeps 0 of 2000 points$"):
+        pipeline.simplify(las, 1e-9, method="random")
+    kept = pipeline.simplify(las, 0.1, method="random")
+    assert len(kept) == len(set(kept)) == 200 and kept.max() < 2_000
 
 
 def test_numpy_numbers_are_taken_as_python_s(tmp_path):

@@ -7,7 +7,9 @@ exactly those of `pipeline run` on the same points; each point carries its index
 from __future__ import annotations
 
 import copy
+import re
 import tempfile
+import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -18,13 +20,14 @@ import zarr
 from model.methods import Method
 from pipeline.config import build_config
 from pipeline.engine.runner import run_scan
-from pipeline.errors import PipelineError
+from pipeline.errors import PipelineError, PipelineNote
 from pipeline.io.output_meta import priority_fraction
 
 if TYPE_CHECKING:
     from dask.distributed import Client
 
 INDEX_DIMENSION = "simplify_source_index"
+RESUME_CLAUSE = re.compile(r" \(finished work kept in .*: re-run the same command to resume\)$")
 ARRAY_SCALE = 1e-4  # grid step of an (n, 3) array written to LAS: 0.1 mm, finer than any scanner
 
 
@@ -43,7 +46,11 @@ def simplify(points: np.ndarray | laspy.LasData, ratio: float, *, method: str | 
         source = Path(folder) / "cloud.las"
         _write_indexed(points, source)
         output = Path(folder) / "kept.zarr"
-        run_scan([source], output, run_config, client=client)
+        try:
+            run_scan([source], output, run_config, client=client,
+                     note=lambda line: warnings.warn(line.replace(str(source), "the points"), PipelineNote, stacklevel=4))
+        except PipelineError as exc:  # about the caller's points, not a temporary file (gone, with any work kept)
+            raise PipelineError(RESUME_CLAUSE.sub("", str(exc)).replace(str(source), "the points")) from None
         group = zarr.open_group(str(output), mode="r")
         index = np.asarray(group[INDEX_DIMENSION][:], dtype=np.int64)
         counts = np.asarray(group["tile_count"][:], dtype=np.int64)
@@ -60,7 +67,10 @@ def progressive_order(counts: np.ndarray) -> np.ndarray:
 def _write_indexed(points: np.ndarray | laspy.LasData, path: Path) -> None:
     """Write the cloud to a LAS file with each point's index in an extra dimension."""
     if isinstance(points, laspy.LasData):
-        header = laspy.LasHeader(version=points.header.version, point_format=copy.deepcopy(points.header.point_format))
+        point_format = copy.deepcopy(points.header.point_format)
+        if INDEX_DIMENSION in point_format.extra_dimension_names:  # a cloud read from an earlier simplify's file
+            point_format.remove_extra_dimension(INDEX_DIMENSION)
+        header = laspy.LasHeader(version=points.header.version, point_format=point_format)
         header.scales, header.offsets = points.header.scales, points.header.offsets
         crs_records = [*points.header.vlrs, *(points.header.evlrs or [])]  # LAS 1.4 may hold its WKT in an EVLR
         header.vlrs.extend(v for v in crs_records if v.user_id == "LASF_Projection")
