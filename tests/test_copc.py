@@ -10,19 +10,22 @@ from pathlib import Path
 import copclib
 import laspy
 import numpy as np
+import pyproj
 import pytest
 from click.testing import CliRunner
 from laspy.copc import Bounds
+from laspy.vlrs.known import ExtraBytesVlr, GeoKeyDirectoryVlr
 
 import pipeline
 from pipeline.apps.cli import cli
 from pipeline.errors import PipelineError
 from pipeline.io import copc_output
-from pipeline.io.crs import crs_wkt
+from pipeline.io.crs import crs_wkt, las_wkt
 from pipeline.io.las_source import LasSource, variable_chunks
 from pipeline.io.output_meta import OutputMeta
 from pipeline.io.provenance import read_provenance
 from pipeline.io.writers import write_output
+from pipeline.simulate.writing import street_header
 from tests.conftest import shared_file, simulated_street
 from tests.test_formats import random_scan
 from tiling.assemble import TilePart
@@ -343,6 +346,146 @@ def test_copc_input_to_copc_output(tmp_path):
         assert len(reader.query()) == report.output_points
         assert [v.user_id for v in reader.header.vlrs].count("copc") == 1
     assert sum(len(r) for r in copclib_nodes(out).values()) == report.output_points
+
+
+def two_extra_bytes_vlrs(point_format: int, n: int = 3_000) -> laspy.LasData:
+    """A scan whose extra bytes two VLRs describe, as a RIEGL scan's (las_with_several_extra_byte_bloc.laz): the
+    first `Deviation` (u2, no-data 0) and `range` (i4, scaled, offset, no-data -1), the second `confidence` (u1),
+    which laspy reads as one unnamed `ExtraBytes` byte; gps_time is the point's index."""
+    header = laspy.LasHeader(point_format=point_format, version="1.4" if point_format >= 6 else "1.2")
+    header.scales, header.offsets = [0.01] * 3, [0.0] * 3
+    header.add_extra_dims([
+        laspy.ExtraBytesParams("Deviation", "u2", "Pulse shape deviation", no_data=[0]),
+        laspy.ExtraBytesParams("range", "i4", "range to target", offsets=[10.0], scales=[0.001], no_data=[-1]),
+        laspy.ExtraBytesParams("confidence", "u1", "confidence values")])
+    first = header.vlrs.get("ExtraBytesVlr")[0]
+    second = ExtraBytesVlr()
+    second.extra_bytes_structs.append(first.extra_bytes_structs.pop())
+    header.vlrs.append(second)  # in place: assigning a list makes laspy merge them again
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(point_format)
+    las.x, las.y, las.z = rng.uniform(0, 40, n), rng.uniform(0, 40, n), rng.uniform(0, 3, n)
+    las.gps_time = np.arange(n, dtype=np.float64)
+    las.Deviation = rng.integers(0, 2 ** 16, n)
+    las.points.array["range"] = rng.integers(-(2 ** 31), 2 ** 31, n)  # the stored integers, not scaled values
+    las.ExtraBytes = rng.integers(0, 256, n)
+    return las
+
+
+@pytest.mark.parametrize("point_format", [1, 6])
+def test_every_extra_bytes_field_keeps_its_description_without_min_max(tmp_path, point_format):
+    """One extra-bytes VLR describing each field of the input's VLRs (name, type, no-data, scale, offset,
+    description) with no min/max: laspy's placeholders (min 2^64-1, max 0), which the writer never filled, made
+    copc.js fail to open the file ("Cannot convert bigint to number")."""
+    source = two_extra_bytes_vlrs(point_format)
+    source_path = tmp_path / "in.las"
+    source.write(source_path)
+    source = laspy.read(source_path)
+    assert list(source.point_format.extra_dimension_names) == ["Deviation", "range", "ExtraBytes"]
+    out = tmp_path / "out.copc.laz"
+    pipeline.run(source_path, out, ratio=0.3, method="fps", workers=1, tile_size=10)
+    header = laspy.open(out).header
+    [vlr] = [v for v in header.vlrs if isinstance(v, ExtraBytesVlr)]
+    fields = vlr.extra_bytes_structs
+    described = [field for v in source.header.vlrs if isinstance(v, ExtraBytesVlr) for field in v.extra_bytes_structs]
+    assert [(f.name, f.data_type, f.description) for f in fields] == [(b"Deviation", 3, b"Pulse shape deviation"),
+                                                                       (b"range", 6, b"range to target"),
+                                                                       (b"confidence", 1, b"confidence values")]
+    for field, before in zip(fields, described):
+        assert field.options == before.options & ~(field.MIN_BIT_MASK | field.MAX_BIT_MASK)
+        assert field.min is None and field.max is None and not any(bytes(field._min) + bytes(field._max))
+        for name in ("no_data", "scale", "offset"):
+            np.testing.assert_array_equal(getattr(field, name), getattr(before, name))
+    result = laspy.read(out)
+    assert list(result.point_format.extra_dimension_names) == ["Deviation", "range", "confidence"]
+    ids = result.gps_time.astype(np.int64)
+    assert len(ids) == 900
+    np.testing.assert_array_equal(result.confidence, source.ExtraBytes[ids])
+    np.testing.assert_array_equal(result.Deviation, source.Deviation[ids])
+    np.testing.assert_allclose(result.range, source.range[ids])
+
+
+def test_cube_on_holds_its_box_as_readers_compute_it():
+    """Readers take the cube as centre -+ halfsize in float64 (copc.js) or as centre - halfsize plus the edge taken
+    from x (laspy): both must hold the box exactly, the cube's minimum and edge within rounding of the box's minimum
+    and longest side (copclib starts its cells at the header's minimum, with that edge)."""
+    rng = np.random.default_rng(0)
+    for _ in range(2_000):
+        first = rng.integers(0, 10 ** 9, 3)  # the box's corners in LAS integers
+        last = first + rng.integers(0, 10 ** 6, 3)
+        scale, offset = float(rng.choice([0.01, 0.001, 0.00025])), rng.uniform(-1e6, 1e6, 3).round()
+        mins, maxs = first * scale + offset, last * scale + offset
+        cube = copc_output.Cube.on(mins, maxs, scale)
+        low, high = cube.center - cube.halfsize, cube.center + cube.halfsize
+        assert np.all(low <= mins) and np.all(high >= maxs) and np.all(low + (high[0] - low[0]) >= maxs)
+        rounding = np.spacing(np.abs(np.concatenate([mins, maxs])).max())  # a coordinate's rounding step
+        assert np.all(np.abs(low - mins) <= 4 * rounding)
+        assert abs(cube.halfsize - max((maxs - mins).max(), scale) / 2) <= 4 * rounding
+
+
+def test_every_point_lies_in_the_cube_readers_compute(tmp_path):
+    """autzen_trim's box, where centre = minimum + halfsize rounds so that centre - halfsize was 636006.3900000001
+    for a minimum x of 636006.39: its boundary points fell outside the cube (copc-validator's xyz check)."""
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales, header.offsets = [0.01] * 3, [0.0] * 3
+    low, high = np.array([63600639, 84893624, 40666]), np.array([63717798, 84949478, 51831])
+    rng = np.random.default_rng(5)
+    ints = np.vstack([low, high, rng.integers(low, high, size=(3_000, 3), endpoint=True)])
+    records = laspy.ScaleAwarePointRecord.zeros(len(ints), header=header)
+    records.X, records.Y, records.Z = ints.T
+    out = tmp_path / "box.copc.laz"
+    write_output(out, header, len(ints), iter([TilePart(0, (0.0, 0.0, 0.0, 0.0), records.array)]),
+                 OutputMeta(None, [], 1.0, "random", "test", {}))
+    points = laspy.read(out)
+    xyz = np.column_stack([points.x, points.y, points.z])
+    with laspy.CopcReader.open(out) as reader:
+        center, halfsize = np.asarray(reader.copc_info.center, dtype=np.float64), float(reader.copc_info.halfsize)
+    assert np.all(xyz >= center - halfsize) and np.all(xyz <= center + halfsize)
+    assert copclib.FileReader(str(out)).ValidateSpatialBounds(False)
+
+
+def crs_records(header: laspy.LasHeader) -> list[tuple[str, int]]:
+    """(user id, record id) of every CRS record: LASF_Projection's GeoTIFF keys and WKT, and libLAS's WKT copy."""
+    return [(v.user_id, v.record_id) for v in [*header.vlrs, *(header.evlrs or [])]
+            if v.user_id == "LASF_Projection" or (v.user_id, v.record_id) == ("liblas", 2112)]
+
+
+def test_geotiff_only_input_gets_a_wkt1_crs_record(runs, street):
+    """The street's CRS is GeoTIFF keys only: the COPC file's one WKT record is WKT1, as LAS 1.4 means it (pyproj's
+    default WKT2 is not: proj4js, copc.js's projection library, cannot read it)."""
+    copc, _ = runs
+    header = laspy.open(copc).header
+    [wkt] = [v for v in header.vlrs if isinstance(v, laspy.vlrs.known.WktCoordinateSystemVlr)]
+    assert wkt.string.startswith(("PROJCS[", "GEOGCS[", "COMPD_CS[")), wkt.string[:40]
+    assert header.parse_crs().equals(laspy.open(street).header.parse_crs(), ignore_axis_order=True)
+
+
+def test_las_wkt_is_wkt1_where_pyproj_can_write_it():
+    assert las_wkt(pyproj.CRS("EPSG:26917").to_wkt()).startswith('PROJCS["NAD83 / UTM zone 17N"')
+    three_d = pyproj.CRS("EPSG:4979").to_wkt()  # a 3-D geographic CRS: no WKT1
+    assert las_wkt(three_d) == three_d
+    assert las_wkt("not a WKT") == "not a WKT"
+
+
+def test_copc_holds_one_crs_record(runs, tmp_path):
+    """GeoTIFF keys, a WKT record and libLAS's copy of it (as autzen_trim holds) become one WKT record: under the WKT
+    bit readers must ignore GeoTIFF keys, and a second WKT record leaves them to choose."""
+    copc, _ = runs
+    assert crs_records(laspy.open(copc).header) == [("LASF_Projection", 2112)]  # GeoTIFF keys only, before
+    source = random_scan(3)
+    [geokeys] = [v for v in street_header().vlrs if isinstance(v, GeoKeyDirectoryVlr)]
+    wkt = pyproj.CRS("EPSG:26917").to_wkt("WKT1_GDAL")
+    source.header.vlrs.extend([geokeys, laspy.vlrs.known.WktCoordinateSystemVlr(wkt),
+                               laspy.VLR("liblas", 2112, "OGR variant of OpenGIS WKT SRS", wkt.encode() + b"\0")])
+    source_path = tmp_path / "in.las"
+    source.write(source_path)
+    assert crs_records(laspy.open(source_path).header) == [("LASF_Projection", 34735), ("LASF_Projection", 2112),
+                                                           ("liblas", 2112)]
+    out = tmp_path / "out.copc.laz"
+    pipeline.run(source_path, out, ratio=0.3, method="fps", workers=1, tile_size=10)
+    header = laspy.open(out).header
+    assert crs_records(header) == [("LASF_Projection", 2112)]
+    assert header.parse_crs().equals(pyproj.CRS("EPSG:26917"), ignore_axis_order=True)
 
 
 @pytest.mark.skipif(shutil.which("pdal") is None,

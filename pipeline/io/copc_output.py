@@ -19,9 +19,9 @@ memory is the largest node (or LOAD_POINTS records) plus fixed buffers, never th
 Library: written here with lazrs (laspy's LAZ backend: one LAZ chunk per node, variable-size chunk table)
 and laspy (header, VLRs, EVLRs). copclib 2.6.3 was measured on the same nodes (200k points: 1.06 M points/s
 against 1.15 M here, identical point records) but fails checks: its writer keeps no VLR but WKT and extra
-bytes (provenance, GeoTIFF keys and the input's EVLRs are lost), leaves header bounds, returns, spacing and
-GPS range at 0 unless set by hand, and its reader misreads a WKT VLR (as PDAL writes it) by 6 bytes. It
-stays as the tests' second, independent reader.
+bytes (provenance and the input's EVLRs are lost), leaves header bounds, returns, spacing and GPS range at 0
+unless set by hand, and its reader misreads a WKT VLR (as PDAL writes it) by 6 bytes. It stays as the tests'
+second, independent reader.
 """
 from __future__ import annotations
 
@@ -37,9 +37,11 @@ from typing import BinaryIO, Iterable, Iterator
 import laspy
 import lazrs
 import numpy as np
+from laspy.vlrs.known import ExtraBytesVlr, WktCoordinateSystemVlr
 from laspy.vlrs.vlrlist import VLRList
 
 from pipeline.errors import PipelineError
+from pipeline.io.crs import las_wkt
 from pipeline.io.output_meta import OutputMeta, priority_fraction
 from tiling.assemble import TilePart
 
@@ -54,6 +56,9 @@ EVLR_HEADER_SIZE = 60
 KEY_BITS = 21               # bits of a cell key per axis when packed in one int64
 ENTRY = struct.Struct("<iiiiQii")  # hierarchy entry: key (level, x, y, z), offset, byte size, point count
 COPC_USER_ID = "copc"
+GEOTIFF_RECORDS = (34735, 34736, 34737)  # LASF_Projection's GeoTIFF keys, doubles and strings
+WKT_RECORD_ID = 2112
+WKT_USER_IDS = ("LASF_Projection", "liblas")  # libLAS (and PDAL) write a copy of the WKT record as `liblas`
 COPC_SPILL_COPIES = 2       # the spill beside the output holds the kept records about twice at its peak (a level
                             # and its split parts), uncompressed
 
@@ -64,7 +69,7 @@ def write_copc(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[
     Scratch files live in a folder beside `path`, removed on success and on failure; its name ends in
     `-<pid>` as `path`'s does, so pipeline.io.atomic's clean-up of a killed run's leftovers removes it too.
     """
-    point_format = copc_point_format(header.point_format)
+    point_format = copc_point_format(described_point_format(header))
     scratch = path.parent / f"{path.name}-{os.getpid()}"
     scratch.mkdir()
     try:
@@ -96,6 +101,34 @@ def copc_point_format(source: laspy.PointFormat) -> laspy.PointFormat:
     return target
 
 
+def described_point_format(header: laspy.LasHeader) -> laspy.PointFormat:
+    """The header's point format with its extra bytes as all of its extra-bytes VLRs describe them (name, type,
+    scale, offset, no-data value, description): laspy reads only the first VLR, drops no-data values and calls the
+    bytes after the first VLR's fields one `ExtraBytes` run (las_with_several_extra_byte_bloc.laz holds two VLRs).
+    Bytes no VLR describes stay one `ExtraBytes` run; laspy's format is kept where the VLRs describe more bytes
+    than a record holds or name two fields alike."""
+    fields = [params for vlr in header.vlrs if isinstance(vlr, ExtraBytesVlr) for params in extra_bytes_params(vlr)]
+    undescribed = header.point_format.num_extra_bytes - sum(params.type.itemsize for params in fields)
+    if not fields or undescribed < 0 or len({params.name for params in fields}) < len(fields):
+        return header.point_format
+    described = laspy.PointFormat(header.point_format.id)
+    for params in fields:
+        described.add_extra_dimension(params)
+    if undescribed:
+        described.add_extra_dimension(laspy.ExtraBytesParams("ExtraBytes", f"{undescribed}u1",
+                                                             "Un-registered ExtraBytes"))
+    return described
+
+
+def extra_bytes_params(vlr: ExtraBytesVlr) -> list[laspy.ExtraBytesParams]:
+    """The fields one extra-bytes VLR describes, as laspy reads them, with the no-data values laspy leaves out
+    (none for undocumented bytes, data type 0, whose options field is their count, not flags)."""
+    fields = vlr.type_of_extra_dims()
+    for params, field in zip(fields, vlr.extra_bytes_structs):
+        params.no_data = field.no_data if field.data_type else None
+    return fields
+
+
 def byte_fields(dimension: laspy.DimensionInfo) -> list[str]:
     """The names of the one-byte fields (`<name>_<i>`) that hold `dimension` in COPC when it is a run of more than
     3 bytes (the input's undocumented extra bytes, which laspy reads as one `ExtraBytes` field), else []: laspy
@@ -108,18 +141,22 @@ def byte_fields(dimension: laspy.DimensionInfo) -> list[str]:
 
 
 def to_copc_records(records: np.ndarray, source: laspy.PointFormat, target: laspy.PointFormat) -> np.ndarray:
-    """(n,) records of `source` as records of `target`: fields copied by name as laspy's conversion does, byte
-    runs into their byte fields, and the legacy scan_angle_rank (degrees) converted to scan_angle (0.006 degree
-    units), which laspy leaves 0."""
-    if source.id == target.id:  # a byte run split in byte fields keeps its layout: same records, new names
+    """(n,) records of `source` as records of `target`: fields copied by name as laspy's conversion does, the extra
+    bytes as they are (`target` names them as the VLRs do and splits byte runs, see `copc_point_format`), and the
+    legacy scan_angle_rank (degrees) converted to scan_angle (0.006 degree units), which laspy leaves 0."""
+    if source.id == target.id:  # the extra bytes keep their layout under their new names: same records
         return records if records.dtype == target.dtype() else records.view(target.dtype())
     packed = laspy.PackedPointRecord(records, source)
     converted = laspy.PackedPointRecord.from_point_record(packed, target)
     converted["scan_angle"] = np.rint(np.asarray(packed["scan_angle_rank"]) / SCAN_ANGLE_UNIT).astype(np.int16)
-    for dimension in source.extra_dimensions:
-        for index, name in enumerate(byte_fields(dimension)):
-            converted[name] = records[dimension.name][:, index]
+    if extra := source.num_extra_bytes:
+        record_bytes(converted.array)[:, -extra:] = record_bytes(records)[:, -extra:]
     return converted.array
+
+
+def record_bytes(records: np.ndarray) -> np.ndarray:
+    """(n, record size) uint8 bytes of (n,) records: a view of contiguous records, which writes through."""
+    return np.ascontiguousarray(records).view(np.uint8).reshape(len(records), records.dtype.itemsize)
 
 
 def level_bounds(total: int) -> np.ndarray:
@@ -182,9 +219,24 @@ class Cube:
     @classmethod
     def on(cls, mins: np.ndarray, maxs: np.ndarray, step: float) -> "Cube":
         """The cube whose minimum corner is the box's and whose edge is its longest side (`step` for a single
-        point), as PDAL's untwine writes it: readers such as copclib take the header's minimum as the cube's."""
+        point), as PDAL's untwine writes it: readers such as copclib take the header's minimum as the cube's.
+        Readers compute the cube in float64, which rounds (autzen_trim: centre - halfsize is 636006.3900000001
+        for a minimum of 636006.39, so boundary points fell outside it), so the centre is lowered and the halfsize
+        raised by a coordinate's rounding step at a time until the cube holds the box both ways readers compute
+        it: centre -+ halfsize (copc.js, copc-validator), and that minimum plus the edge taken from x (laspy, see
+        `cells`). Not widened by a scale step: copclib's cells start at the header's minimum, and cells shifted
+        by a step would put points near their faces in nodes copclib says do not hold them."""
         halfsize = max(float((maxs - mins).max()), step) / 2
-        return cls(mins + halfsize, halfsize)
+        center = mins + halfsize
+        rounding = float(np.spacing(np.abs(np.concatenate([mins, maxs])).max()))
+        while True:
+            low = center - halfsize
+            if np.any(low > mins):
+                center = np.where(low > mins, np.nextafter(center, -np.inf), center)
+            elif np.any(center + halfsize < maxs) or np.any(low + ((center[0] + halfsize) - low[0]) < maxs):
+                halfsize += rounding
+            else:
+                return cls(center, halfsize)
 
     def cells(self, records: np.ndarray, header: laspy.LasHeader, level: int) -> np.ndarray:
         """(n,) packed cell (see `pack`) of each record at `level`, exact against the cell bounds readers
@@ -277,8 +329,8 @@ def hierarchy_page(entries: dict[tuple[int, int, int, int], tuple[int, int, int]
 
 def copc_header(header: laspy.LasHeader, point_format: laspy.PointFormat, meta: OutputMeta) -> laspy.LasHeader:
     """A LAS 1.4 header in the COPC format for the input's (stamped) header: its identity fields, scales and
-    offsets, and its VLRs after a COPC info placeholder, with a WKT VLR (from the GeoTIFF keys) if it had none;
-    laspy rewrites the extra-bytes VLR from the point format's extra dimensions."""
+    offsets, and its VLRs and EVLRs after a COPC info placeholder and the run's CRS as one WKT1 record (see
+    `without_crs`); laspy makes one extra-bytes VLR from the point format's extra dimensions (see `clear_min_max`)."""
     copc = laspy.LasHeader(version="1.4", point_format=point_format)
     for field in ("file_source_id", "uuid", "system_identifier", "generating_software", "creation_date"):
         setattr(copc, field, getattr(header, field))
@@ -286,12 +338,32 @@ def copc_header(header: laspy.LasHeader, point_format: laspy.PointFormat, meta: 
     copc.offsets = np.asarray(header.offsets, dtype=np.float64)
     copc.global_encoding.gps_time_type = header.global_encoding.gps_time_type
     copc.global_encoding.wkt = True
-    kept = [v for v in header.vlrs if v.user_id not in (COPC_USER_ID, "laszip encoded")]
-    if meta.crs_wkt and not any(isinstance(v, laspy.vlrs.known.WktCoordinateSystemVlr) for v in kept):
-        kept.insert(0, laspy.vlrs.known.WktCoordinateSystemVlr(meta.crs_wkt))
-    copc.vlrs = VLRList([laspy.VLR(COPC_USER_ID, 1, "COPC info VLR", bytes(INFO_SIZE))] + kept)
-    copc.evlrs = VLRList([v for v in header.evlrs or [] if v.user_id != COPC_USER_ID])
+    wkt = [WktCoordinateSystemVlr(las_wkt(meta.crs_wkt))] if meta.crs_wkt else []
+    kept = without_crs([v for v in header.vlrs if v.user_id not in (COPC_USER_ID, "laszip encoded")], bool(wkt))
+    copc.vlrs = VLRList([laspy.VLR(COPC_USER_ID, 1, "COPC info VLR", bytes(INFO_SIZE)), *wkt, *kept])
+    clear_min_max(copc.vlrs)
+    copc.evlrs = VLRList(without_crs([v for v in header.evlrs or [] if v.user_id != COPC_USER_ID], bool(wkt)))
     return copc
+
+
+def without_crs(records: list[laspy.VLR], wkt_written: bool) -> list[laspy.VLR]:
+    """The input's (E)VLRs less the CRS records the COPC file's one WKT record replaces, so every reader finds the
+    same CRS: the GeoTIFF keys (LAS 1.4 formats 6-8 with the WKT bit describe the CRS in WKT only) and, where a
+    WKT record is written, every input WKT record (`LASF_Projection`'s, and libLAS's copy under `liblas`)."""
+    return [v for v in records if not (v.user_id == "LASF_Projection" and v.record_id in GEOTIFF_RECORDS
+                                       or wkt_written and v.user_id in WKT_USER_IDS and v.record_id == WKT_RECORD_ID)]
+
+
+def clear_min_max(vlrs: Iterable[laspy.VLR]) -> None:
+    """Mark the min and max of every typed extra-bytes field as absent, and zero them: laspy marks both and fills
+    them in as it writes points, which this writer does node by node without it, so they would keep laspy's
+    placeholders (min 2^64-1 and max 0 for integers, +-1.8e308 for floats), which readers take as values (copc.js
+    cannot open the file: "Cannot convert bigint to number"). Untyped bytes (data type 0) count bytes in options."""
+    for vlr in vlrs:
+        for field in vlr.extra_bytes_structs if isinstance(vlr, ExtraBytesVlr) else ():
+            if field.data_type:
+                field.options &= ~(field.MIN_BIT_MASK | field.MAX_BIT_MASK)
+                field._min, field._max = type(field._min)(), type(field._max)()
 
 
 def info_record(cube: Cube, spacing: float, hierarchy: tuple[int, int], gps: tuple[float, float]) -> bytes:

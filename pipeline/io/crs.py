@@ -45,6 +45,19 @@ def crs_wkt(header: laspy.LasHeader) -> str | None:
     return None
 
 
+def las_wkt(wkt: str) -> str:
+    """`wkt` as a LAS 1.4 CRS record holds it: WKT1 as GDAL writes it (the record is OGC WKT1, as PDAL writes it
+    and proj4js, copc.js's projection library, reads it; pyproj's default, WKT2, is for the zarr output), or `wkt`
+    unchanged where pyproj cannot parse it or cannot express the CRS in WKT1 (a 3-D geographic CRS, EPSG:4979)."""
+    import pyproj
+
+    crs = crs_from_wkt(wkt)
+    try:
+        return crs.to_wkt("WKT1_GDAL") if crs is not None else wkt
+    except pyproj.exceptions.CRSError:
+        return wkt
+
+
 def degrees_reason(header: laspy.LasHeader) -> str | None:
     """Why the coordinates are in degrees (a geographic CRS, or no CRS but lon/lat-looking values on a
     sub-metre-in-degrees grid), or None. Tile sizes, halos and neighbourhoods are in metres."""
