@@ -215,3 +215,30 @@ def test_a_ply_list_property_on_vertices_is_refused_in_one_line(tmp_path):
         str(tmp_path / "in.ply"))
     with pytest.raises(pipeline.PipelineError, match="'ids' is a list"):
         PlySource(tmp_path / "in.ply")
+
+
+def test_extra_bytes_min_and_max_are_the_data_s_or_marked_absent(tmp_path):
+    """A LAS/LAZ output's extra-bytes fields whose min and max are marked present hold the kept points' own:
+    laspy's tracking as it writes left a field with a no-data value at its placeholders (min 2^64-1 above max
+    0) and others with a min above the data's, so they are marked absent. Readers such as copc.js take marked
+    values as they are."""
+    from laspy.vlrs.known import ExtraBytesVlr
+
+    header = laspy.LasHeader(version="1.4", point_format=6)
+    header.add_extra_dims([laspy.ExtraBytesParams("deviation", "u2", no_data=[0]),
+                           laspy.ExtraBytesParams("plain", "i4")])
+    las = laspy.LasData(header)
+    rng = np.random.default_rng(4)
+    las.x, las.y, las.z = rng.uniform(0, 40, (3, 5_000))
+    las.deviation, las.plain = rng.integers(1, 900, 5_000), rng.integers(-50, 50, 5_000)
+    las.write(tmp_path / "in.las")
+    pipeline.run(tmp_path / "in.las", tmp_path / "out.laz", ratio=0.2, method="random", workers=1)
+    out = laspy.read(tmp_path / "out.laz")
+    fields = {f.name.rstrip(b"\0").decode(): f for v in out.header.vlrs if isinstance(v, ExtraBytesVlr)
+              for f in v.extra_bytes_structs}
+    for name, field in fields.items():
+        values = np.asarray(out[name])
+        if field.options & field.MIN_BIT_MASK:
+            assert field.min[0] <= values.min() and field.max[0] >= values.max(), name
+    assert not fields["deviation"].options & fields["deviation"].MIN_BIT_MASK
+    assert fields["deviation"].no_data[0] == 0  # what a reader needs is kept

@@ -10,7 +10,7 @@ import numpy as np
 
 from pipeline.errors import PipelineError, file_system_error, raise_stop_behind
 from pipeline.io.atomic import atomic_output
-from pipeline.io.copc_output import write_copc
+from pipeline.io.copc_output import clear_min_max, write_copc
 from pipeline.io.output_meta import OutputMeta
 from pipeline.io.provenance import stamped_header
 from tiling.assemble import TilePart
@@ -91,6 +91,10 @@ def _write_las(path: Path, header: laspy.LasHeader, parts: Iterable[TilePart], c
     and a tile's few thousand complete none alone."""
     written = 0
     evlrs = header.evlrs
+    # laspy 2.7 would track each extra-bytes field's min and max as it writes, but gets them wrong: a field with a
+    # no-data value keeps its placeholders (min 2^64-1, max 0: the extra-bytes file's Deviation), others a min
+    # above the data's; they are marked absent, as in COPC outputs
+    clear_min_max(header.vlrs)
     raw = RecordingFile(path)
     records = (part.records for part in parts)
     try:
