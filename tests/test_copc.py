@@ -368,7 +368,7 @@ def two_extra_bytes_vlrs(point_format: int, n: int = 3_000) -> laspy.LasData:
     las.gps_time = np.arange(n, dtype=np.float64)
     las.Deviation = rng.integers(0, 2 ** 16, n)
     las.points.array["range"] = rng.integers(-(2 ** 31), 2 ** 31, n)  # the stored integers, not scaled values
-    las.ExtraBytes = rng.integers(0, 256, n)
+    las.confidence = rng.integers(0, 256, n)  # in memory the field has its name; read back, laspy calls it ExtraBytes
     return las
 
 

@@ -235,3 +235,20 @@ def test_extra_bytes_named_like_the_writers_arrays_or_with_a_slash_survive(tmp_p
     assert by_las_name["spatial_ref"] != "spatial_ref" and by_las_name["tile_count"] != "tile_count"
     assert pyproj.CRS.from_cf(dataset["spatial_ref"].attrs) == pyproj.CRS.from_epsg(32610)  # still the CRS
     assert dataset["tile_count"].dims == ("tile",) and int(dataset["tile_count"].sum()) == dataset.sizes["point"]
+
+
+def test_every_extra_bytes_field_is_a_variable_by_its_own_name(tmp_path):
+    """The second extra-bytes VLR's field (`confidence`), which laspy reads as one unnamed `ExtraBytes` byte, is
+    a variable under its own name, holding the kept points' values."""
+    from tests.test_copc import two_extra_bytes_vlrs
+
+    source = two_extra_bytes_vlrs(6)
+    source.write(tmp_path / "in.las")
+    pipeline.run(tmp_path / "in.las", tmp_path / "out.zarr", ratio=0.5, method="random", workers=1)
+    dataset = xr.open_zarr(tmp_path / "out.zarr")
+    assert "confidence" in dataset and "ExtraBytes" not in dataset
+    assert dataset["confidence"].attrs["long_name"] == "confidence values" and dataset["confidence"].dtype == np.uint8
+    by_time = dict(zip(np.asarray(source.gps_time).astype(int), np.asarray(source.confidence)))
+    kept = dataset["gps_time"].values.astype(int)
+    assert np.array_equal(dataset["confidence"].values, [by_time[t] for t in kept])
+    assert np.array_equal(dataset["Deviation"].values, np.asarray(source.Deviation)[kept])

@@ -22,6 +22,7 @@ import zarr
 
 from pipeline.errors import PipelineError
 from pipeline.io.crs import crs_from_wkt
+from pipeline.io.extra_bytes import described_point_format
 from pipeline.io.output_meta import OutputMeta
 from pipeline.io.provenance import run_record
 from pipeline.io.zarr_attrs import (COORDINATES, GRID_MAPPING, TILE_BOUNDS, TILE_COLUMNS, grid_mapping_attrs,
@@ -73,6 +74,7 @@ def write_zarr(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[
     attributes; return the points."""
     group = zarr.open_group(str(path), mode="w", zarr_format=ZARR_FORMAT)
     crs = crs_from_wkt(meta.crs_wkt)
+    header = described_header(header)  # every extra-bytes field by its own name, not laspy's `ExtraBytes` run
     point_format = header.point_format
     names = zarr_dimensions(point_format)  # array name -> LAS name, which the attributes keep (las_dimension)
     probe = laspy.ScaleAwarePointRecord.zeros(1, header=header)
@@ -93,7 +95,7 @@ def write_zarr(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[
 
     def flush(final: bool) -> int:
         """Write whole chunks of the pending records (all of them when final); return the new write position."""
-        records = np.concatenate(pending) if pending else np.empty(0, point_format.dtype())
+        records = np.concatenate(pending).view(point_format.dtype()) if pending else np.empty(0, point_format.dtype())
         size = len(records) if final else len(records) // ZARR_CHUNK * ZARR_CHUNK
         record = laspy.ScaleAwarePointRecord(records[:size], point_format, header.scales, header.offsets)
         for variable, name in names.items():
@@ -123,6 +125,17 @@ def write_zarr(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[
     })
     zarr.consolidate_metadata(str(path))
     return start
+
+
+def described_header(header: laspy.LasHeader) -> laspy.LasHeader:
+    """A copy of `header` whose point format names its extra bytes as all its extra-bytes VLRs do
+    (pipeline.io.extra_bytes); the same record layout, so records are viewed in its dtype."""
+    described = described_point_format(header)
+    if described is header.point_format:
+        return header
+    copy = laspy.LasHeader(version=header.version, point_format=described)
+    copy.scales, copy.offsets, copy.global_encoding = header.scales, header.offsets, header.global_encoding
+    return copy
 
 
 def _write_tile_index(group: zarr.Group, ids: Sequence[int], bounds: Sequence[tuple[float, float, float, float]],
