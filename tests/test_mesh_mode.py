@@ -105,3 +105,11 @@ def test_missing_open3d_names_the_extra(monkeypatch):
     monkeypatch.setitem(sys.modules, "open3d", None)  # makes `import open3d` raise ImportError
     with pytest.raises(PipelineError, match=r"pip install 'lidar-simplify\[mesh\]'"):
         _open3d()
+
+
+def test_options_mesh_mode_does_not_use_are_refused(tmp_path, sphere_off):
+    """--tile-size, --keep-class and the like were taken and silently ignored: one line instead."""
+    for flag, value in (("--tile-size", "5"), ("--keep-class", "2"), ("--workers", "1")):
+        result = cli("run", str(sphere_off), "-r", "0.2", "--mesh", "-o", str(tmp_path / "out.ply"), flag, value)
+        assert_one_line_error(result, f"{flag} does not apply")
+    assert not (tmp_path / "out.ply").exists()

@@ -165,6 +165,15 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
         if mesh:
             from pipeline.apps.mesh_mode import run_mesh
 
+            unused = [flag for flag, value in (
+                ("--levels", levels), ("--keep-class", keep_class), ("--thin-class", thin_class),
+                ("--tile-size", tile_size), ("--overlap", overlap), ("--max-tile-points", max_tile_points),
+                ("--merge-tile-points", merge_tile_points), ("--seam-tolerance", seam_tolerance),
+                ("--workers", workers), ("--memory-limit", memory_limit), ("--scratch", scratch),
+                ("--scheduler", scheduler), ("--allow-geographic", allow_geographic or None)) if value is not None]
+            if unused:  # taken silently, they would seem to have been applied
+                raise PipelineError(f"--mesh simplifies one mesh's vertices as a whole, in this process: {unused[0]} "
+                                    "does not apply")
             mesh_report = run_mesh(inputs, output, settings, overwrite=overwrite)
             if not quiet:
                 click.echo(mesh_report.summary())
