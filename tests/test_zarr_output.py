@@ -112,6 +112,10 @@ def test_spatial_ref_is_the_input_crs_and_every_variable_points_to_it(street_out
     assert pyproj.CRS.from_wkt(zarr.open_group(str(store), mode="r").attrs["crs_wkt"]) == source
     for name in ("x", "y", "tile_xmin", "tile_ymax"):
         assert dataset[name].attrs["units"] == "metre"
+    for name in ("x", "y"):  # CF's roles, which GDAL and cf_xarray read
+        assert dataset[name].attrs["axis"] == name.upper()
+        assert dataset[name].attrs["standard_name"] == f"projection_{name}_coordinate"
+    assert dataset["z"].attrs["axis"] == "Z" and dataset["z"].attrs["positive"] == "up"
 
 
 def test_classification_and_flags_carry_cf_meanings(street_outputs):
@@ -192,6 +196,7 @@ def test_without_a_crs_there_is_no_spatial_ref(tmp_path):
     assert "spatial_ref" not in dataset.variables and dataset.attrs["crs_wkt"] is None
     assert not any("grid_mapping" in variable.attrs for variable in dataset.variables.values())
     assert "units" not in dataset["x"].attrs and "units" not in dataset["z"].attrs  # no CRS says what the unit is
+    assert dataset["x"].attrs["axis"] == "X" and "standard_name" not in dataset["x"].attrs  # nor what x measures
     assert set(dataset["intensity"].coords) == {"x", "y", "z"}
 
 

@@ -85,6 +85,7 @@ def point_attrs(name: str, header: laspy.LasHeader, crs: pyproj.CRS | None) -> d
                      comment=f"LAS integer {las_name} = round(({name} - las_add_offset) / las_scale_factor)")
         unit = axis_unit(crs, name)
         attrs.update({"units": unit} if unit else {})
+        attrs.update(coordinate_role(name, crs))
     elif info.scales is not None:  # an extra-bytes dimension laspy scales (laspy requires offsets with scales)
         attrs.update(las_scale_factor=_json(info.scales), las_add_offset=_json(info.offsets))
     if name in ("return_number", "number_of_returns"):
@@ -92,6 +93,17 @@ def point_attrs(name: str, header: laspy.LasHeader, crs: pyproj.CRS | None) -> d
     if name == "gps_time":
         attrs["long_name"] = _GPS_TIME[header.global_encoding.gps_time_type]
     return attrs
+
+
+def coordinate_role(name: str, crs: pyproj.CRS | None) -> dict[str, str]:
+    """CF's axis of coordinate `name` (x, y or z), and for x and y in a projected CRS their standard name, which
+    GDAL and cf_xarray read (not longitude and latitude for a geographic one: a geographic label also comes on
+    coordinates in metres, as lone-star.laz's, which a run takes as metres)."""
+    role = {"axis": name.upper(), **({"positive": "up"} if name == "z" else {})}
+    horizontal = crs.sub_crs_list[0] if crs is not None and crs.is_compound else crs
+    if horizontal is None or name == "z" or not horizontal.is_projected:
+        return role
+    return {**role, "standard_name": f"projection_{name}_coordinate"}
 
 
 def tile_attrs(name: str, crs: pyproj.CRS | None) -> dict[str, Any]:
