@@ -236,10 +236,11 @@ def tail_bytes(records: np.ndarray, count: int) -> np.ndarray:
     return np.ascontiguousarray(records).view(np.uint8).reshape(len(records), -1)[:, -count:]
 
 
-@pytest.mark.parametrize("size", [4, 8, 30])
+@pytest.mark.parametrize("size", [2, 3, 4, 8, 30])
 def test_undocumented_extra_bytes_are_kept_and_read_back(tmp_path, size):
     """Records longer than their format with no extra-bytes VLR: laspy reads the bytes as one `ExtraBytes` field;
-    the COPC file must be readable by laspy and `info` and hold each kept point's bytes."""
+    the COPC file must be readable by laspy and `info`, hold each kept point's bytes, and describe them by the
+    types LAS 1.4 R15 keeps (not the deprecated arrays, 11-30, which copc.js rejects)."""
     header = laspy.LasHeader(point_format=1, version="1.2")
     header.scales, header.offsets = [0.01] * 3, [0.0] * 3
     header.add_extra_dim(laspy.ExtraBytesParams("raw", f"{size}u1"))
@@ -271,6 +272,8 @@ def test_undocumented_extra_bytes_are_kept_and_read_back(tmp_path, size):
         assert len(reader.query()) == 900
     info = CliRunner().invoke(cli, ["info", str(out)], prog_name="pipeline")
     assert info.exit_code == 0 and "900" in info.output, info.output
+    types = [f.data_type for v in result.header.vlrs if isinstance(v, ExtraBytesVlr) for f in v.extra_bytes_structs]
+    assert len(types) == size and set(types) == {1}  # one u1 field per byte
 
 def test_input_evlrs_follow_the_hierarchy(tmp_path):
     source = random_scan(6)

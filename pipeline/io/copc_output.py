@@ -103,12 +103,13 @@ def copc_point_format(source: laspy.PointFormat) -> laspy.PointFormat:
 
 
 def byte_fields(dimension: laspy.DimensionInfo) -> list[str]:
-    """The names of the one-byte fields (`<name>_<i>`) that hold `dimension` in COPC when it is a run of more than
-    3 bytes (the input's undocumented extra bytes, which laspy reads as one `ExtraBytes` field), else []: laspy
-    describes such a run as data_type 0 with options = its byte count, then reads those options back as
-    scale/offset flags and cannot open the file; one `u1` field per byte round-trips and keeps every byte."""
+    """The names of the one-byte fields (`<name>_<i>`) that hold `dimension` in COPC when it is a run of bytes
+    (the input's undocumented extra bytes, which laspy reads as one `ExtraBytes` field), else []: laspy describes
+    a run of more than 3 as data_type 0 with options = its byte count, then reads those options back as
+    scale/offset flags and cannot open the file, and one of 2 or 3 by an array type (11-30), which LAS 1.4 R15
+    deprecates and copc.js rejects; one `u1` field per byte round-trips and keeps every byte."""
     dtype = dimension.dtype
-    if dimension.is_standard or dtype is None or dtype.base != np.uint8 or dimension.num_elements <= 3:
+    if dimension.is_standard or dtype is None or dtype.base != np.uint8 or dimension.num_elements <= 1:
         return []
     return [f"{dimension.name}_{index}" for index in range(dimension.num_elements)]
 
