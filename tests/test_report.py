@@ -109,6 +109,31 @@ def test_report_command_and_region(street_scan: Path, thinned: dict[str, Path], 
     assert bad.exit_code == 2 and "--region must be X,Y,SIZE" in bad.output
 
 
+def test_the_report_replaces_no_input_and_no_page_unasked(street_scan: Path, thinned: dict[str, Path],
+                                                          tmp_path: Path) -> None:
+    """`-o` naming an input (the scan itself) is refused, as a run's output is; an existing page or its PNG is
+    replaced only with --overwrite (the report wrote over anything, a LAZ scan included)."""
+    runner = CliRunner()
+    source = tmp_path / "scan.laz"
+    source.write_bytes(street_scan.read_bytes())
+    before = source.read_bytes()
+    over_input = runner.invoke(cli, ["report", str(source), str(thinned["fps"]), "-o", str(source), "--sample", "0"])
+    assert over_input.exit_code == 2 and "unsupported output type" in over_input.output
+    page = tmp_path / "page.html"
+    page.write_text("my notes")
+    kept = runner.invoke(cli, ["report", str(source), str(thinned["fps"]), "-o", str(page), "--sample", "0"])
+    assert kept.exit_code == 2 and "already exists (pass --overwrite" in kept.output
+    refused = runner.invoke(cli, ["report", str(source), str(thinned["fps"]), "-o", str(page), "--sample", "0",
+                                  "--overwrite"])  # not a page this command wrote
+    assert refused.exit_code == 2 and "is not a HTML file" in refused.output and page.read_text() == "my notes"
+    page.unlink()
+    for _ in range(2):
+        result = runner.invoke(cli, ["report", str(source), str(thinned["fps"]), "-o", str(page), "--sample", "0",
+                                     "--overwrite"])
+        assert result.exit_code == 0, result.output
+    assert source.read_bytes() == before
+
+
 def test_region_parse() -> None:
     """X,Y,SIZE is a square centred on (X, Y)."""
     region = parse_region("10,20,4")

@@ -335,14 +335,16 @@ def compare_command(input_file: Path, ratios: str, methods: str, out_dir: Path, 
               show_default=True, help="What colours the 3-D points (one scale, fixed from the source).")
 @click.option("--sample", type=int, default=DEFAULT_SAMPLE, show_default=True,
               help="Evaluate on seeded whole grid cells holding about this many source points; 0: every point.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing page and its PNG.")
 def report_command(source: Path, outputs: tuple[Path, ...], page: Path, region: str | None, color: str,
-                   sample: int) -> None:
+                   sample: int, overwrite: bool) -> None:
     """One self-contained HTML page judging OUTPUT(s) against SOURCE: a before/after 3-D view of one region,
     a kept-to-expected density map per output, the metrics with units, and how each output was made."""
     from pipeline.apps.report import write_report
     from pipeline.apps.visual.report_region import parse_region
 
-    click.echo(write_report(source, list(outputs), page, parse_region(region) if region else None, color, sample))
+    click.echo(write_report(source, list(outputs), page, parse_region(region) if region else None, color, sample,
+                            overwrite=overwrite))
 
 
 for extra in (demo_command, train_command, train_detail_command):

@@ -21,6 +21,7 @@ from pipeline.apps.visual.report_tables import metrics_table, provenance_table, 
 from pipeline.apps.visual.view3d import SYNC_CAMERAS, ColourScale, region_figure
 from pipeline.errors import PipelineError
 from pipeline.io.atomic import atomic_output
+from pipeline.io.output_guard import check_output
 from pipeline.io.crs import axis_unit, parsed_crs
 from pipeline.io.provenance import software_name
 from pipeline.io.scan import open_source
@@ -35,15 +36,20 @@ p.note{color:#555;font-size:0.9em}"""
 
 
 def write_report(source: Path, outputs: Sequence[Path], path: Path, region: Region | None = None,
-                 color: str = "elevation", sample: int = DEFAULT_SAMPLE, seed: int = 0) -> Path:
+                 color: str = "elevation", sample: int = DEFAULT_SAMPLE, seed: int = 0, overwrite: bool = False) -> Path:
     """Score `outputs` against `source` (on `sample` reference points, see pipeline.apps.scoring) and write the
-    HTML report to `path` (and its density-map PNG beside it); return `path`.
+    HTML report to `path` (and its density-map PNG beside it); return `path`. Neither may be one of the files
+    reported on, nor replace an existing file without `overwrite` (nor, even with it, one that is not a page or
+    PNG), as a run's output may not.
 
     `region` is the square shown in 3-D (default: the source's cell with the most structure); `color` is
     elevation, classification or rgb.
     """
     if not outputs:
         raise PipelineError("give at least one output to report on")
+    read = [Path(source), *map(Path, outputs)]
+    check_output(Path(path), read, overwrite, (".html",))
+    check_output(density_png_path(Path(path)), read, overwrite, (".png",))
     reference, scores = evaluate(Path(source), [Path(o) for o in outputs], sample, seed)
     return render_report(reference, scores, [Path(o).name for o in outputs], Path(path), region, color)
 

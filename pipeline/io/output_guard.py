@@ -13,7 +13,8 @@ from typing import Sequence
 
 from pipeline.errors import PipelineError
 
-SIGNATURES = {".las": b"LASF", ".laz": b"LASF", ".ply": b"ply"}  # what a file we write starts with
+SIGNATURES = {".las": b"LASF", ".laz": b"LASF", ".ply": b"ply", ".html": b"<!DOCTYPE html>",  # what a file we write
+              ".png": b"\x89PNG"}                                                                 # starts with
 ZARR_MARKERS = ("zarr.json", ".zgroup", ".zarray")  # a zarr v3 or v2 store holds one of these at its root
 
 
