@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import laspy
@@ -33,9 +34,9 @@ def test_folder_batch_records_each_scan_and_reruns_only_what_failed(scans, tmp_p
     assert [e["event"] for e in log if e["event"] in ("done", "failed")] == ["done", "done", "failed"]
     assert all("time" in e for e in log) and log[-1] == {**log[-1], "event": "batch", "done": 2, "failed": 1}
     manifest = json.loads((out / "batch-manifest.json").read_text())
-    assert manifest[str(out / "a.simplified.las")]["status"] == "done"
-    assert manifest[str(out / "a.simplified.las")]["output_points"] == 300
-    assert "broken.laz" in manifest[str(out / "broken.simplified.laz")]["error"]
+    assert manifest["a.simplified.las"]["status"] == "done"  # by its path from the manifest's folder
+    assert manifest["a.simplified.las"]["output_points"] == 300
+    assert "broken.laz" in manifest["broken.simplified.laz"]["error"]
     assert len(laspy.read(out / "b.simplified.las").points) == 200
     assert not (out / "broken.simplified.laz").exists()
 
@@ -45,6 +46,12 @@ def test_folder_batch_records_each_scan_and_reruns_only_what_failed(scans, tmp_p
                  "--log-json")
     assert second.returncode == 0, second.stderr
     assert [e["event"] for e in events(second.stdout)] == ["skipped", "skipped", "started", "done", "batch"]
+    # the same batch from another folder, its out-dir spelled relative: all done (all were 'failed': already exists)
+    third = cli("batch", os.path.relpath(scans, tmp_path), "--out-dir", "out", "--ratio", "0.1", "--method", "random",
+                "-w", "1", "--log-json", cwd=tmp_path)
+    assert third.returncode == 0, third.stderr
+    assert [e["event"] for e in events(third.stdout)] == ["skipped", "skipped", "skipped", "batch"]
+    assert len(json.loads((out / "batch-manifest.json").read_text())) == 3
 
 
 def batch_of(tmp_path: Path, defaults: str, jobs: str):
@@ -61,7 +68,7 @@ def test_toml_job_list_with_defaults_and_per_job_settings(scans, tmp_path):
                       f'["{scans}/a.las", "{scans}/b.las"]\noutput = "merged.laz"\nratio = 0.5\n')
     assert len(laspy.read(tmp_path / "small" / "a.simplified.las").points) == 300
     assert len(laspy.read(tmp_path / "merged.laz").points) == 2_500
-    assert json.loads((tmp_path / "jobs.manifest.json").read_text())[str(tmp_path / "merged.laz")]["status"] == "done"
+    assert json.loads((tmp_path / "jobs.manifest.json").read_text())["merged.laz"]["status"] == "done"
     assert "batch: 2 done, 0 already done, 0 failed" in result.stdout
 
 

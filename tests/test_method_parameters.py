@@ -75,6 +75,28 @@ def test_the_work_folder_key_follows_every_parameter_and_provenance_the_changed_
     assert output_settings(changed)["method_parameters"] == {"slack": 0.1}
 
 
+def test_the_work_folder_key_follows_the_weights_contents_not_their_place(tmp_path):
+    """Weights changed in place resumed a killed run (and skipped a batch job) with the old ones; the same weights
+    elsewhere (an install moved) resumed nothing: the key reads their digest, not their path."""
+    import numpy as np
+
+    scan = tmp_path / "scan.las"
+    write_patch(scan, 26917, 1.0, n=2_000)
+    here, there = tmp_path / "a" / "detail.npz", tmp_path / "b" / "detail.npz"
+    for copy in (here, there):
+        copy.parent.mkdir()
+        copy.write_bytes(DETAIL_WEIGHTS.read_bytes())
+
+    def key(weights: Path) -> str:
+        return run_key([scan], build_config(method="learned", method_parameters={"weights": str(weights)}))
+
+    assert key(here) == key(there)
+    with np.load(here) as saved:
+        arrays = {name: saved[name] for name in saved.files}
+    np.savez(here, **{**arrays, "shift": arrays["shift"] + 1})
+    assert key(here) != key(there)
+
+
 def test_a_parameter_reaches_the_workers(tmp_path):
     """A cluster run (pickled jobs) with a looser voxel slack keeps other points than the default, and the
     output records the parameter."""

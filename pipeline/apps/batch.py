@@ -17,6 +17,7 @@ output exists, and retries the rest.
 from __future__ import annotations
 
 import json
+import os
 import time
 import tomllib
 from dataclasses import dataclass, field
@@ -157,15 +158,25 @@ class Manifest:
             raise PipelineError(f"{path}: not a batch manifest (a JSON object of per-output records); "
                                 "move it aside to start afresh")
 
+    def name(self, output: Path) -> str:
+        """The record name of an output: its path from the manifest's folder, however the command spelled it (a
+        batch run from another folder, or with --out-dir absolute, found nothing done), and the same after the
+        folder moves."""
+        return os.path.relpath(output.resolve(), self.path.parent.resolve())
+
+    def wrote(self, job: BatchJob) -> bool:
+        """Whether an earlier batch finished this job's output (so replacing it needs no --overwrite)."""
+        return self.entries.get(self.name(job.output), {}).get("status") == "done"
+
     def is_done(self, job: BatchJob, key: str) -> bool:
         """Finished earlier with the same inputs and settings, and the output is still there."""
-        entry = self.entries.get(str(job.output), {})
+        entry = self.entries.get(self.name(job.output), {})
         return (entry.get("status") == "done" and entry.get("key") == key
                 and all(path.exists() for path in written_paths(job.output, job.config.levels)))
 
     def record(self, job: BatchJob, entry: dict[str, Any]) -> None:
         """Store one job's outcome and rewrite the file atomically."""
-        self.entries[str(job.output)] = {"inputs": [str(p) for p in job.inputs], **entry}
+        self.entries[self.name(job.output)] = {"inputs": [str(p) for p in job.inputs], **entry}
         self.path.parent.mkdir(parents=True, exist_ok=True)
         write_atomically(self.path, lambda tmp: tmp.write_text(json.dumps(self.entries, indent=2)))
 
@@ -190,7 +201,7 @@ def run_batch(jobs: list[BatchJob], manifest: Manifest, log: Callable[[dict[str,
                 continue
             log({"event": "started", **event})
             started = time.time()
-            ours = manifest.entries.get(str(job.output), {}).get("status") == "done"  # an earlier batch wrote it
+            ours = manifest.wrote(job)
             try:
                 job.output.parent.mkdir(parents=True, exist_ok=True)
                 report = run_scan(list(job.inputs), job.output, job.config, overwrite=overwrite or ours,

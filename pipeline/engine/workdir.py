@@ -24,6 +24,7 @@ from model.registry import changed_parameters
 from pipeline.config import RunConfig
 from pipeline.errors import PipelineError
 from pipeline.io.atomic import atomic_output
+from pipeline.io.provenance import weights_digest
 from pipeline.version import __version__
 
 MANIFEST = "manifest.json"
@@ -43,8 +44,13 @@ def output_settings(config: RunConfig) -> dict[str, Any]:
 
 def run_key(inputs: Sequence[Path], config: RunConfig) -> str:
     """A digest of the inputs (resolved path, size, mtime), the output-deciding settings, every parameter
-    of the method (read from its fields, so none can be left out) and the version."""
-    settings = {**output_settings(config), "method_parameters": config.simplifier.parameters()}
+    of the method (read from its fields, so none can be left out; trained weights by their contents' digest,
+    not where they lie: weights changed in place would have resumed with the old, and an install moved
+    elsewhere would have resumed nothing) and the version."""
+    parameters = config.simplifier.parameters()
+    if (weights := config.simplifier.trained_weights()) is not None:
+        parameters["weights"] = weights_digest(weights)
+    settings = {**output_settings(config), "method_parameters": parameters}
     files = [(str(path.resolve()), path.stat().st_size, path.stat().st_mtime_ns) for path in inputs]
     text = json.dumps({"inputs": files, "settings": settings, "version": __version__}, sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:16]

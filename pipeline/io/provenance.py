@@ -25,11 +25,18 @@ def software_name() -> str:
     return f"{SOFTWARE} {__version__}"[:32]
 
 
-@lru_cache(maxsize=None)
 def weights_digest(path: Path | None) -> str | None:
-    """`<file name>:<the first 16 hex digits of its SHA-256>` of a method's trained weights (None: it has none)."""
+    """`<file name>:<the first 16 hex digits of its SHA-256>` of a method's trained weights (None: it has none);
+    read again once the file changes (its size or modification time), as weights retrained in place do."""
     if path is None:
         return None
+    stat = path.stat()
+    return file_digest(path, stat.st_size, stat.st_mtime_ns)
+
+
+@lru_cache(maxsize=None)
+def file_digest(path: Path, size: int, mtime_ns: int) -> str:
+    """weights_digest of the file at `path` as it is at that size and time (each version read once)."""
     return f"{path.name}:{hashlib.sha256(path.read_bytes()).hexdigest()[:16]}"
 
 
