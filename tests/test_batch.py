@@ -108,3 +108,12 @@ def test_run_log_json_reports_success_and_failure(scans, tmp_path):
     assert bad.returncode == 2
     (failed,) = events(bad.stdout)
     assert failed["event"] == "failed" and "--ratio" in failed["error"]
+
+
+def test_a_refused_batch_still_logs_its_outcome_as_json(tmp_path):
+    """A batch refused before any job (no such job list, two jobs writing one output) printed its one line on
+    stderr only: a log collector reading stdout never saw that the nightly batch did not run."""
+    result = cli("batch", str(tmp_path / "missing"), "--out-dir", str(tmp_path / "out"), "--ratio", "0.1", "--log-json")
+    assert result.returncode == 2
+    [outcome] = events(result.stdout)
+    assert outcome["event"] == "failed" and "no such job file or folder" in outcome["error"]

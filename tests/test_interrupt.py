@@ -5,6 +5,7 @@ left, the finished work kept; the same command then resumes and finishes.
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 import os
 import signal
@@ -66,17 +67,19 @@ def test_stopped_run_says_how_to_resume_and_resumes(tmp_path, patch, big_patch, 
     here = 0 if where == "cluster" else 10_000_000  # on this process's threads (and tile processes), or a cluster
     (tmp_path / "place.toml").write_text(f"[run]\nin_process_points = {here}\n")
     command = [sys.executable, "-m", "pipeline.apps.cli", "run", str(patch), "-r", "0.1", "-o", str(out), "--tile-size", "2",
-               "-w", "2", "--config", str(tmp_path / "place.toml"), "-q"]
+               "-w", "2", "--config", str(tmp_path / "place.toml"), "--log-json"]
     run = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
                            preexec_fn=interruptible)
     while not list(tmp_path.glob(".out.laz.work-*/tile-*.npz")):
         assert run.poll() is None, run.stderr.read()  # still running when the first tile is done
         time.sleep(0.02)  # small tiles and a short poll: the simplify phase is far longer than the wait
     os.killpg(run.pid, stop)
-    _, stderr = run.communicate(timeout=HANG_GUARD_S)
+    stdout, stderr = run.communicate(timeout=HANG_GUARD_S)
     assert run.returncode == code, stderr
     lines = stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith("pipeline: interrupted; finished work kept in "), stderr
+    outcome = json.loads(stdout.strip().splitlines()[-1])  # --log-json: a stop ends stdout too (it printed none)
+    assert outcome["event"] == "stopped" and outcome["exit_code"] == code and outcome["error"] in lines[0]
     assert "re-run the same command to resume" in lines[0] and "Traceback" not in stderr
     assert not out.exists() and len(list(tmp_path.glob(".out.laz.work-*"))) == 1
     time.sleep(1)  # workers end with the run's process: give the last one a moment to be reaped

@@ -7,8 +7,10 @@ import logging
 import os
 import signal
 import sys
+from contextlib import contextmanager
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any, Iterator
 
 import click
 
@@ -151,7 +153,7 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
     """Simplify INPUTS (LAS/LAZ/COPC/PLY files that together form one scan) to one output."""
     from pipeline.engine.runner import run_scan
 
-    try:
+    with outcome_logged(log_json, input=[str(p) for p in inputs]):
         if ratio is None and levels is None and not {"ratio", "levels"} & set(load_settings(config)[0]):
             raise PipelineError("give --ratio (the fraction of points to keep) or --levels (or either in --config)")
         settings = build_config(config, ratio=ratio, method=method, method_parameters=parse_parameters(params),
@@ -183,10 +185,6 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
                           progress=Progress.for_terminal(quiet, log_json), scheduler=scheduler, stop_grace_s=STOP_GRACE_S,
                           note=None if quiet or log_json else lambda line: click.echo(f"pipeline: note: {line}",
                                                                                       err=True))
-    except PipelineError as exc:
-        if log_json:
-            log_json_line({"event": "failed", "input": [str(p) for p in inputs], "error": str(exc)})
-        raise
     if log_json:
         log_json_line({"event": "done", "input": [str(p) for p in inputs], "output": str(report.output),
                        "input_points": report.input_points, "output_points": report.output_points,
@@ -228,6 +226,15 @@ def batch_command(jobs: Path, out_dir: Path | None, ratio: float | None, method:
     Finished jobs are skipped on a rerun; a failed job is recorded and the rest go on; the exit code
     is 1 if any job failed.
     """
+    with outcome_logged(log_json, jobs=str(jobs)):
+        batch_jobs(jobs, out_dir, ratio, method, params, config, workers, memory_limit, scheduler, scratch, manifest,
+                   overwrite, log_json)
+
+
+def batch_jobs(jobs: Path, out_dir: Path | None, ratio: float | None, method: str | None, params: tuple[str, ...],
+               config: str | None, workers: int | None, memory_limit: str | None, scheduler: str | None,
+               scratch: Path | None, manifest: Path | None, overwrite: bool, log_json: bool) -> None:
+    """`pipeline batch`'s work (see batch_command), its events logged as they come."""
     from pipeline.apps.batch import Manifest, jobs_from_folder, jobs_from_toml, run_batch
 
     flags = {name: value for name, value in dict(ratio=ratio, method=method, config=config, workers=workers,
@@ -252,6 +259,29 @@ def batch_command(jobs: Path, out_dir: Path | None, ratio: float | None, method:
     log({"event": "batch", "done": summary.done, "skipped": summary.skipped, "failed": len(summary.failed)})
     if summary.failed:
         sys.exit(1)
+
+
+@contextmanager
+def outcome_logged(log_json: bool, **event: Any) -> Iterator[None]:
+    """With --log-json, a command that does not finish still ends its stdout with one JSON line, `event` and: a
+    `stopped` one (Ctrl-C, SIGTERM, or an error after one) with the shell's exit code, or a `failed` one with the
+    one-line error that stderr shows. Only a PipelineError was logged: a stop, a file-system error or a crash
+    left stdout without an outcome."""
+    try:
+        yield
+    except SystemExit:
+        raise
+    except BaseException as exc:
+        if log_json:
+            stop = exc if isinstance(exc, KeyboardInterrupt) else STOPS[-1] if STOPS else None
+            if stop is not None:
+                log_json_line({"event": "stopped", **event, "error": str(exc) or "interrupted",
+                               "exit_code": signal_exit_code(stop)})
+            else:
+                error = file_system_error(exc) if isinstance(exc, OSError) else exc
+                said = str(error) if isinstance(error, PipelineError) else f"{type(exc).__name__}: {exc}"
+                log_json_line({"event": "failed", **event, "error": said})
+        raise
 
 
 def log_json_line(event: dict) -> None:
