@@ -74,3 +74,39 @@ def test_a_sigkilled_run_resumes_from_its_finished_tiles(scan, clean_output, tmp
     assert done >= 3 and f"{done} finished earlier" in rerun.stdout
     np.testing.assert_array_equal(laspy.read(out).points.array, clean_output)
     assert not list(tmp_path.glob(".out.laz.*"))  # the work folder and any temporaries are gone
+
+
+def test_a_work_folder_left_damaged_is_made_again_where_damaged(tmp_path, street_scan, monkeypatch):
+    """Files renamed into the work folder before the disk held them can be short after a crash or reboot: a
+    truncated tile result, an empty survey, a stored piece cut short, the store's layout file gone. Each rerun
+    failed alike (a traceback, or 'Aborted!'); it now makes those parts again and writes the same output."""
+    import pipeline
+    from pipeline.engine.workdir import WorkDir
+
+    settings = dict(ratio=0.1, method="learned", tile_size=8.0, workers=1)
+    clean = tmp_path / "clean.laz"
+    pipeline.run(street_scan, clean, **settings)
+    out = tmp_path / "out.laz"
+    with monkeypatch.context() as kept:  # the finished run's folder stays, as a crash before its removal leaves it
+        kept.setattr(WorkDir, "remove", lambda self: None)
+        pipeline.run(street_scan, out, **settings)
+    [work] = tmp_path.glob(".out.laz.work-*")
+    out.unlink()
+    tile = sorted(work.glob("tile-*.npz"))[-1]
+    tile.write_bytes(tile.read_bytes()[:100])
+    (sorted(work.glob("survey-*.npz"))[0]).write_bytes(b"")
+    rows = work / "tiles" / "p0.rows"
+    rows.write_bytes(rows.read_bytes()[:1000])
+    with pytest.warns(pipeline.PipelineNote, match=r"unreadable file\(s\) of an earlier attempt made again") as said:
+        pipeline.run(street_scan, out, **settings)
+    assert "piece-0.npz" in str(said[0].message) and tile.name in str(said[0].message)
+    assert np.array_equal(laspy.read(out).points.array, laspy.read(clean).points.array)
+    with monkeypatch.context() as kept:  # now with the store's layout file gone
+        kept.setattr(WorkDir, "remove", lambda self: None)
+        pipeline.run(street_scan, tmp_path / "again.laz", **settings)
+    [again] = tmp_path.glob(".again.laz.work-*")
+    (again / "tiles" / "store.json").unlink()
+    (tmp_path / "again.laz").unlink()
+    with pytest.warns(pipeline.PipelineNote, match="piece-0.npz"):
+        pipeline.run(street_scan, tmp_path / "again.laz", **settings)
+    assert np.array_equal(laspy.read(tmp_path / "again.laz").points.array, laspy.read(clean).points.array)

@@ -140,6 +140,9 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
         remove_stale_temporaries(path)
     work = WorkDir.for_run(output, Path(scratch) if scratch else None, scan.paths, config)
     with work.held():  # a second run of the same command is refused before it touches the folder
+        if dropped := work.drop_damaged():
+            (note or (lambda line: None))(f"{work.path}: {len(dropped)} unreadable file(s) of an earlier attempt "
+                                          f"made again ({', '.join(dropped[:3])}{', ...' if len(dropped) > 3 else ''})")
         written = None
         guard = StopGuard(stop_grace_s)
         try:

@@ -13,6 +13,7 @@ import hashlib
 import json
 import os
 import shutil
+import zipfile
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -25,6 +26,7 @@ from pipeline.config import RunConfig
 from pipeline.errors import PipelineError
 from pipeline.io.atomic import atomic_output
 from pipeline.io.provenance import weights_digest
+from tiling.store import TileStore, array_name
 from pipeline.version import __version__
 
 MANIFEST = "manifest.json"
@@ -142,6 +144,36 @@ class WorkDir:
         """Record a piece as bucketed (after its rows are in the store)."""
         write_atomically(self.piece_path(number), lambda tmp: save_npz(tmp, **asdict(piece)))
 
+    def drop_damaged(self) -> list[str]:
+        """Remove what an earlier attempt left unreadable, so the run makes it again: a result file whose zip
+        does not read whole (a file renamed before the disk held it, then a crash or reboot), a stored piece of
+        rows whose size is not the one its piece record says (and that record), and every piece record when the
+        store's layout file is gone. Resuming assumed that a file that exists is complete: every rerun failed
+        alike, in a traceback. Returns the names removed."""
+        dropped = [path for path in sorted(self.path.glob("*.npz")) if not whole_zip(path)]
+        store = self.store_path
+        try:
+            row_bytes = TileStore.open(store).row_bytes if TileStore.exists(store) else None
+        except (OSError, ValueError, KeyError, TypeError):  # a layout file that does not parse: a new store
+            row_bytes = None
+            shutil.rmtree(store, ignore_errors=True)
+        for record in sorted(self.path.glob("piece-*.npz")):
+            if record in dropped:
+                continue
+            if row_bytes is None:
+                dropped.append(record)
+                continue
+            number = int(record.stem.split("-")[1])
+            with np.load(record) as saved:
+                expected = int(saved["starts"][-1]) * row_bytes
+            rows = [store / array_name(number), store / array_name(number, crowded=True)]
+            if (not rows[0].is_file() or rows[0].stat().st_size != expected
+                    or rows[1].is_file() and rows[1].stat().st_size % row_bytes):
+                dropped.append(record)
+        for path in dropped:
+            path.unlink(missing_ok=True)
+        return [path.name for path in dropped]
+
     def has_results(self) -> bool:
         """Whether any piece, survey or tile finished: worth keeping for a resume."""
         return any(any(self.path.glob(f"{kind}-*.npz")) for kind in ("piece", "survey", "tile"))
@@ -149,6 +181,15 @@ class WorkDir:
     def remove(self) -> None:
         """Delete the folder: the run finished and its output is in place."""
         shutil.rmtree(self.path, ignore_errors=True)
+
+
+def whole_zip(path: Path) -> bool:
+    """Whether an .npz file reads whole: its zip directory and every member's checksum."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return archive.testzip() is None
+    except (zipfile.BadZipFile, OSError, EOFError):
+        return False
 
 
 def save_npz(path: Path, **arrays: np.ndarray) -> None:
