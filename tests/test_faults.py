@@ -110,3 +110,26 @@ def test_a_work_folder_left_damaged_is_made_again_where_damaged(tmp_path, street
     with pytest.warns(pipeline.PipelineNote, match="piece-0.npz"):
         pipeline.run(street_scan, tmp_path / "again.laz", **settings)
     assert np.array_equal(laspy.read(tmp_path / "again.laz").points.array, laspy.read(clean).points.array)
+
+
+def test_work_folders_no_run_can_resume_go_once_the_output_is_written(tmp_path, street_scan, monkeypatch):
+    """A changed command starts afresh, and the earlier command's folder (the scan's size, uncompressed) stayed for
+    ever; once the output is written, such folders for it go, but not one a run still holds."""
+    import fcntl
+
+    import pipeline
+    from pipeline.engine.workdir import LOCK, WorkDir
+
+    out = tmp_path / "out.laz"
+    for ratio in (0.3, 0.2):  # two earlier commands, each stopped before its folder was removed
+        with monkeypatch.context() as kept:
+            kept.setattr(WorkDir, "remove", lambda self: None)
+            kept.setattr(WorkDir, "remove_others", lambda self, output: [])
+            pipeline.run(street_scan, out, ratio=ratio, method="random", workers=1, overwrite=True)
+    earlier = sorted(tmp_path.glob(".out.laz.work-*"))
+    assert len(earlier) == 2
+    with open(earlier[0] / LOCK, "a") as held:  # a run working in the first one
+        fcntl.flock(held, fcntl.LOCK_EX)
+        with pytest.warns(pipeline.PipelineNote, match="removed 1 work folder"):
+            pipeline.run(street_scan, out, ratio=0.1, method="random", workers=1, overwrite=True)
+    assert sorted(tmp_path.glob(".out.laz.work-*")) == [earlier[0]]

@@ -139,10 +139,11 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
     for path in outputs:
         remove_stale_temporaries(path)
     work = WorkDir.for_run(output, Path(scratch) if scratch else None, scan.paths, config)
+    tell = note or (lambda line: None)
     with work.held():  # a second run of the same command is refused before it touches the folder
         if dropped := work.drop_damaged():
-            (note or (lambda line: None))(f"{work.path}: {len(dropped)} unreadable file(s) of an earlier attempt "
-                                          f"made again ({', '.join(dropped[:3])}{', ...' if len(dropped) > 3 else ''})")
+            tell(f"{work.path}: {len(dropped)} unreadable file(s) of an earlier attempt made again "
+                 f"({', '.join(dropped[:3])}{', ...' if len(dropped) > 3 else ''})")
         written = None
         guard = StopGuard(stop_grace_s)
         try:
@@ -155,7 +156,7 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
                 try:
                     written, tiles, resumed, kept_whole, fill = simplify_scan(
                         scan, outputs, config, settings, work, active, clock, progress or Progress(),
-                        note or (lambda line: None))
+                        tell)
                 except KeyboardInterrupt as exc:  # the cluster closes next: bounded, if a grace is given
                     guard.arm(f"pipeline: {interrupted_line(work)}", signal_exit_code(exc))
                     raise
@@ -169,6 +170,9 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
             guard.cancel()
             raise interrupted(exc, work, output if written is not None else None) from None
         work.remove()
+        if removed := work.remove_others(output):
+            tell(f"removed {len(removed)} work folder(s) of earlier attempts at {output} with other inputs or "
+                 "settings, which no run can resume")
     hole = None if fill is None else (fill.cover_radius * unit.metres, fill.unbounded_radius * unit.metres)
     return RunReport(outputs[0], scan.point_count, written[0], tiles, resumed, clock.total, clock.laps,
                      tuple(zip(outputs, written)), kept_whole, hole, 0 if fill is None else fill.floor_tiles)

@@ -101,15 +101,32 @@ class WorkDir:
         Where the file system has no locks (some network mounts), runs are not held apart."""
         descriptor = os.open(self.path / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
         try:
-            try:
-                fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except OSError as exc:
-                if exc.errno in (errno.EWOULDBLOCK, errno.EACCES):
-                    raise PipelineError(f"{self.path}: another run of the same command is working in this folder "
-                                        "(wait for it to finish, or stop it and re-run to resume)") from None
+            if not locked(descriptor):
+                raise PipelineError(f"{self.path}: another run of the same command is working in this folder "
+                                    "(wait for it to finish, or stop it and re-run to resume)")
             yield
         finally:
             os.close(descriptor)
+
+    def remove_others(self, output: Path) -> list[Path]:
+        """Once `output` is written, delete the work folders beside this one of earlier attempts at it with other
+        inputs or settings, which no run can resume any more (a changed command starts afresh: each left its
+        folder behind, the scan's size uncompressed), but none a run still holds. Returns those removed."""
+        removed = []
+        for other in sorted(self.path.parent.glob(f".{output.name}.work-*")):
+            if other == self.path or not (other / MANIFEST).is_file():
+                continue
+            try:
+                descriptor = os.open(other / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+            except OSError:
+                continue
+            try:
+                if locked(descriptor):
+                    shutil.rmtree(other, ignore_errors=True)
+                    removed.append(other)
+            finally:
+                os.close(descriptor)
+        return removed
 
     @property
     def store_path(self) -> Path:
@@ -181,6 +198,16 @@ class WorkDir:
     def remove(self) -> None:
         """Delete the folder: the run finished and its output is in place."""
         shutil.rmtree(self.path, ignore_errors=True)
+
+
+def locked(descriptor: int) -> bool:
+    """Take the advisory lock on an open file without waiting: False if another process holds it. True where the
+    file system has no locks (some network mounts): runs are then not held apart."""
+    try:
+        fcntl.flock(descriptor, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError as exc:
+        return exc.errno not in (errno.EWOULDBLOCK, errno.EACCES)
+    return True
 
 
 def whole_zip(path: Path) -> bool:
