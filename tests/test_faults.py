@@ -1,6 +1,7 @@
 """Real faults on real processes: a Dask worker killed mid-run, the whole job SIGKILLed and re-run."""
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
@@ -133,3 +134,17 @@ def test_work_folders_no_run_can_resume_go_once_the_output_is_written(tmp_path, 
         with pytest.warns(pipeline.PipelineNote, match="removed 1 work folder"):
             pipeline.run(street_scan, out, ratio=0.1, method="random", workers=1, overwrite=True)
     assert sorted(tmp_path.glob(".out.laz.work-*")) == [earlier[0]]
+
+
+def test_a_shared_scratch_keeps_the_folders_of_other_outputs_of_one_name(tmp_path, street_scan):
+    """Two outputs of one file name in other folders share a --scratch: writing one leaves the other's work."""
+    import pipeline
+
+    scratch, first, second = tmp_path / "scratch", tmp_path / "a" / "out.laz", tmp_path / "b" / "out.laz"
+    for folder in (scratch, first.parent, second.parent):
+        folder.mkdir()
+    other = scratch / ".out.laz.work-0123456789abcdef"  # the first output's, from a killed run
+    other.mkdir()
+    (other / "manifest.json").write_text(json.dumps({"output": str(first)}))
+    pipeline.run(street_scan, second, ratio=0.1, method="random", workers=1, scratch=scratch)
+    assert other.is_dir()

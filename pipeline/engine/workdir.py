@@ -114,7 +114,7 @@ class WorkDir:
         folder behind, the scan's size uncompressed), but none a run still holds. Returns those removed."""
         removed = []
         for other in sorted(self.path.parent.glob(f".{output.name}.work-*")):
-            if other == self.path or not (other / MANIFEST).is_file():
+            if other == self.path or not made_for(other, output):  # a shared --scratch holds other outputs' too
                 continue
             try:
                 descriptor = os.open(other / LOCK, os.O_RDWR | os.O_CREAT, 0o644)
@@ -198,6 +198,15 @@ class WorkDir:
     def remove(self) -> None:
         """Delete the folder: the run finished and its output is in place."""
         shutil.rmtree(self.path, ignore_errors=True)
+
+
+def made_for(folder: Path, output: Path) -> bool:
+    """Whether a work folder's manifest names `output` (resolved, as this process sees both)."""
+    try:
+        named = json.loads((folder / MANIFEST).read_text())["output"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return False
+    return isinstance(named, str) and Path(named).resolve() == output.resolve()
 
 
 def locked(descriptor: int) -> bool:
