@@ -231,9 +231,12 @@ class Paper(Method):
         return not self.refine
 
     def check_weights(self, path: Path) -> None:
-        if not zipfile.is_zipfile(path) or not any(name.endswith("data.pkl") for name in zipfile.ZipFile(path).namelist()):
-            raise ValueError(f"parameter 'weights': {path} is not a torch checkpoint of the paper's network (a .pt "
-                             "written by `pipeline train`)")
+        if zipfile.is_zipfile(path):
+            with zipfile.ZipFile(path) as archive:
+                if any(name.endswith("data.pkl") for name in archive.namelist()):
+                    return
+        raise ValueError(f"parameter 'weights': {path} is not a torch checkpoint of the paper's network (a .pt "
+                         "written by `pipeline train`)")
 
 
 def checked_weights(path: Path | str) -> Path:

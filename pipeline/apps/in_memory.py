@@ -48,7 +48,8 @@ def simplify(points: np.ndarray | laspy.LasData, ratio: float, *, method: str | 
         output = Path(folder) / "kept.zarr"
         try:
             run_scan([source], output, run_config, client=client,
-                     note=lambda line: warnings.warn(line.replace(str(source), "the points"), PipelineNote, stacklevel=4))
+                     note=lambda line: warnings.warn(line.replace(str(source), "the points"), PipelineNote,
+                                                     stacklevel=4))
         except PipelineError as exc:  # about the caller's points, not a temporary file (gone, with any work kept)
             raise PipelineError(RESUME_CLAUSE.sub("", str(exc)).replace(str(source), "the points")) from None
         group = zarr.open_group(str(output), mode="r")

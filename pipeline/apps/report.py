@@ -36,7 +36,8 @@ p.note{color:#555;font-size:0.9em}"""
 
 
 def write_report(source: Path, outputs: Sequence[Path], path: Path, region: Region | None = None,
-                 color: str = "elevation", sample: int = DEFAULT_SAMPLE, seed: int = 0, overwrite: bool = False) -> Path:
+                 color: str = "elevation", sample: int = DEFAULT_SAMPLE, seed: int = 0,
+                 overwrite: bool = False) -> Path:
     """Score `outputs` against `source` (on `sample` reference points, see pipeline.apps.scoring) and write the
     HTML report to `path` (and its density-map PNG beside it); return `path`. Neither may be one of the files
     reported on, nor replace an existing file without `overwrite` (nor, even with it, one that is not a page or
