@@ -117,3 +117,12 @@ def test_a_refused_batch_still_logs_its_outcome_as_json(tmp_path):
     assert result.returncode == 2
     [outcome] = events(result.stdout)
     assert outcome["event"] == "failed" and "no such job file or folder" in outcome["error"]
+
+
+def test_a_bad_flag_value_is_logged_as_json_too(tmp_path):
+    """Click refuses `--ratio abc` before the command runs; under --log-json stdout says so in one JSON line."""
+    for command in ("run", "batch"):
+        result = cli(command, str(tmp_path / "x.laz"), "--ratio", "abc", "--log-json")
+        assert result.returncode == 2 and "is not a valid float" in result.stderr
+        [outcome] = events(result.stdout)
+        assert outcome["event"] == "failed" and "'abc' is not a valid float" in outcome["error"]

@@ -38,6 +38,7 @@ class OneLineErrors(click.Group):
 
     def invoke(self, ctx: click.Context):
         STOPS.clear()  # a command run in-process (click's test runner, a notebook) starts with none
+        arguments = list(ctx.args)  # the subcommand's, which click empties before it parses them
         previous = signal.signal(signal.SIGTERM, raise_terminated), signal.signal(signal.SIGINT, raise_interrupted)
         try:
             result = super().invoke(ctx)
@@ -53,6 +54,10 @@ class OneLineErrors(click.Group):
         except KeyboardInterrupt as exc:  # Ctrl-C or SIGTERM: one line, the shell's exit code, no traceback
             click.echo(f"pipeline: {exc if isinstance(exc, Interrupted) else 'interrupted'}", err=True)
             sys.exit(signal_exit_code(exc))
+        except click.UsageError as exc:  # a bad flag or value: click says so; --log-json readers get it too
+            if "--log-json" in arguments:
+                log_json_line({"event": "failed", "error": exc.format_message()})
+            raise
         except Exception:  # a library's error from a stop raised inside its call (see raise_stop_behind)
             if not STOPS:
                 raise
