@@ -171,3 +171,17 @@ def test_the_forkserver_outlives_sigterm_but_what_it_forks_does_not():
         other.start()
         assert answers.get(timeout=60) is True
         other.join(timeout=60)
+
+
+def test_compare_from_a_script_without_a_main_guard_ends_in_a_line_that_says_so(tmp_path, street_scan):
+    """compare's runs share a local cluster whose spawned workers import the calling script again: without a
+    __main__ guard each worker started a compare of its own and Dask ended in 'Nanny failed to start'."""
+    script = tmp_path / "unguarded.py"
+    script.write_text("import pipeline\n"
+                      f"pipeline.compare({str(street_scan)!r}, ratios=[0.1], methods=['random'], "
+                      f"out_dir={str(tmp_path / 'out')!r}, workers=1, sample=0)\n")
+    result = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300,
+                            env={**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1])})
+    assert result.returncode != 0
+    assert result.stderr.strip().splitlines()[-1].endswith(
+        'must do so under `if __name__ == "__main__":`, as each worker imports it again')

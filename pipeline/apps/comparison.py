@@ -25,6 +25,7 @@ from pipeline.apps.scoring import (METRIC_COLUMNS, Reference, Score, check_sampl
 from pipeline.apps.visual.plots import Panel, metric_plot, region_view
 from pipeline.config import build_config
 from pipeline.engine.execute import cluster
+from pipeline.engine.processes import importing_parents_script
 from pipeline.engine.runner import run_scan
 from pipeline.errors import PipelineError
 from pipeline.io.points import Cells, covering_grid, load_xyz, point_count
@@ -93,6 +94,9 @@ def compare(source: Path, ratios: Sequence[float], methods: Sequence[str], out_d
             options: RunOptions = RunOptions(), sample: int = DEFAULT_SAMPLE, html: bool = False) -> list[Path]:
     """Run, score and report every method at every ratio; return the files written to `out_dir`
     (with `html`, also compare.html: the `pipeline report` page of every run, and its density-map PNG)."""
+    if importing_parents_script():  # its runs share a local cluster, whose workers import the caller's script
+        raise PipelineError("pipeline.compare was called while a worker process imported the script that started "
+                            "it: call it under `if __name__ == \"__main__\":`")
     unknown = [m for m in methods if m not in PRODUCERS]
     if unknown:
         raise PipelineError(f"unknown method(s) {', '.join(unknown)}; known: {', '.join(PRODUCERS)}")

@@ -6,7 +6,7 @@ import logging
 import os
 import socket
 import traceback
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Iterator
 from urllib.parse import urlsplit
@@ -38,14 +38,33 @@ def local_cluster(workers: int, memory_limit: str) -> Iterator[Client]:
     # but made read+bucket 1.6x and simplify 1.5x slower on bcts_1..4 (page faults on every big array).
     # Dask's statistical profiler samples each worker's threads every 10 ms for a dashboard we never start:
     # off, the workers of a learned run on bcts_1..4 used 6 % less CPU.
-    with dask.config.set({"distributed.nanny.pre-spawn-environ": ONE_THREAD, "distributed.worker.profile.enabled": False}):
-        with LocalCluster(n_workers=local_workers(workers), threads_per_worker=1, memory_limit=memory_limit, processes=True,
-                          dashboard_address=None, preload=[WORKER_PRELOAD],
-                          # no dashboard; the scheduler's health-check server takes a free port, not 8787,
-                          # which another run may hold (Dask then warns on stderr, breaking one-line errors)
-                          scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}) as cluster, Client(cluster) as client:
-            client.register_plugin(WorkerSettings())
-            yield client
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": ONE_THREAD, "distributed.worker.profile.enabled": False}), \
+            ExitStack() as opened:
+        with workers_started():
+            cluster = opened.enter_context(LocalCluster(
+                n_workers=local_workers(workers), threads_per_worker=1, memory_limit=memory_limit, processes=True,
+                dashboard_address=None, preload=[WORKER_PRELOAD],
+                # no dashboard; the scheduler's health-check server takes a free port, not 8787,
+                # which another run may hold (Dask then warns on stderr, breaking one-line errors)
+                scheduler_kwargs={"dashboard_address": "127.0.0.1:0"}))
+        client = opened.enter_context(Client(cluster))
+        client.register_plugin(WorkerSettings())
+        yield client
+
+
+@contextmanager
+def workers_started() -> Iterator[None]:
+    """A local cluster whose workers fail to start ends in one line: most often a script that runs the tool at
+    its top level, which each spawned worker imports again (Dask said only 'Nanny failed to start', after the
+    workers' tracebacks)."""
+    try:
+        yield
+    except RuntimeError as exc:
+        if "failed to start" not in str(exc):
+            raise
+        raise PipelineError(f"the local Dask cluster's workers failed to start ({exc}): a script that calls "
+                            "pipeline.run or pipeline.compare must do so under `if __name__ == \"__main__\":`, "
+                            "as each worker imports it again") from None
 
 
 @contextmanager
