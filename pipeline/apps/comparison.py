@@ -151,11 +151,11 @@ def write_json(reference: Reference, entries: Sequence[Entry], out_dir: Path) ->
 def write_metric_plots(entries: Sequence[Entry], out_dir: Path) -> list[Path]:
     """One PNG per metric against the ratio, a line per method."""
     paths = []
-    for title, field, _ in METRIC_COLUMNS:
+    for title, metric, _ in METRIC_COLUMNS:
         values: dict[str, dict[float, float]] = {}
         for e in entries:
-            values.setdefault(e.method, {})[e.ratio] = getattr(e.score.quality, field)
-        paths.append(metric_plot(values, title, out_dir / f"{field}.png"))
+            values.setdefault(e.method, {})[e.ratio] = getattr(e.score.quality, metric)
+        paths.append(metric_plot(values, title, out_dir / f"{metric}.png"))
     return paths
 
 
