@@ -34,6 +34,25 @@ def test_levels_are_nested_exact_and_the_finest_is_the_plain_run(tmp_path, stree
     assert np.array_equal(laspy.read(plain.output).points.array, kept[0])  # the same points, in the same order
 
 
+def test_each_level_is_a_subset_of_the_one_before_when_tile_budgets_are_uneven(tmp_path):
+    """Three levels over tiles of very unequal size (a crowded cell split among small tiles beside sparse ones):
+    shared from the finest level each time, largest-remainder budgets are not monotone in their total, and the
+    0.3 level held points the 0.4 level did not."""
+    rng = np.random.default_rng(1)
+    xyz = np.r_[rng.uniform(0, 1, (5_000, 3)) * [200, 200, 5], rng.normal(0, 0.05, (4_000, 3)) + [100, 100, 2]]
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.scales, header.offsets = [0.01] * 3, [0.0] * 3
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = xyz.T
+    las.gps_time = np.arange(len(xyz), dtype=np.float64)  # each point's id
+    las.write(tmp_path / "in.las")
+    pipeline.run(tmp_path / "in.las", tmp_path / "out.las", levels=(0.9, 0.4, 0.3), method="stratified",
+                 max_tile_points=1_000, workers=1)
+    ids = [set(laspy.read(tmp_path / f"out.r{level}.las").gps_time.astype(int)) for level in ("0.9", "0.4", "0.3")]
+    assert [len(level) for level in ids] == [kept_count(r, 9_000) for r in (0.9, 0.4, 0.3)]
+    assert ids[2] <= ids[1] <= ids[0]
+
+
 def test_coarse_levels_stay_spread_over_the_scan(tmp_path, street_scan):
     """A level is each tile's first picks, not the first tiles: its points cover the scan's 10 m cells as the
     finest level's do."""

@@ -295,8 +295,11 @@ def stitch_outputs(scan: Scan, outputs: list[Path], plan: TilePlan, results: dic
     with progress.phase("resolve seams", len(results), unit="tile") as phase:
         rejections = seam_rejections(plan, results, budgets, config.seam_tolerance, on_tile=phase.update)
     written = []
+    level = budgets
     for path, ratio in zip(outputs, config.levels or (config.ratio,)):
-        level = nested_budgets(budgets, kept_count(ratio, thinned))
+        # each level shared from the one before, not from the finest: a largest-remainder share is not monotone
+        # in its total (0.4 gave a tile 0 points where 0.3 gave it 1), and a level must be a subset of the last
+        level = nested_budgets(level, kept_count(ratio, thinned))
         meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], ratio, config.method,
                           __version__, settings, config.simplifier.trained_weights())
         with progress.phase(f"write {path.name}", len(results), unit="tile") as phase:
