@@ -74,8 +74,8 @@ def level_parts(plan: TilePlan, results: dict[int, str], budgets: np.ndarray, le
         result = TileResult.load(path)
         rejected = rejections.get(tile_id, np.empty(0, dtype=np.int64))
         chosen = first_accepted(len(result.records), int(budgets[tile_id]), rejected)[:int(level_budgets[tile_id])]
-        records = np.concatenate([moved_to(take_records(result.records, chosen), result.xyz[chosen], scales, offsets),
-                                  result.whole])
+        records = np.concatenate([moved_to(take_records(result.records, chosen), result.xyz[chosen], scales, offsets,
+                                           picked_box(result.records, scales, offsets)), result.whole])
         order = interleaved(np.arange(len(chosen)), len(chosen) + spread_order(result.whole_xyz))
         records = take_records(records, order)
         yield TilePart(tile_id, covering(plan.bounds(tile_id), grid_xyz(records, scales, offsets)), records)
@@ -90,12 +90,22 @@ def covering(rect: tuple[float, float, float, float], xyz: np.ndarray) -> tuple[
             max(rect[2], float(high[0])), max(rect[3], float(high[1])))
 
 
-def moved_to(records: np.ndarray, xyz: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+def picked_box(records: np.ndarray, scales: np.ndarray, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(3,) low and high corners of the measured positions of a tile's picks (records, before any refinement)."""
+    xyz = grid_xyz(records, scales, offsets)
+    return (column_min(xyz), column_max(xyz)) if len(xyz) else (np.zeros(3), np.zeros(3))
+
+
+def moved_to(records: np.ndarray, xyz: np.ndarray, scales: np.ndarray, offsets: np.ndarray,
+             box: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """(n,) records whose X/Y/Z follow (n, 3) xyz where a method refined the position (attributes stay the
-    source's)."""
+    source's), held inside `box`, the corners of the tile's picks as measured: the paper's refinement moves
+    points in a unit ball scaled by the tile's largest side, so a tall or thin tile's points left it (a plane
+    for metres off it, a 10 km tower by 300 m), and a point pushed past the grid's int32 reach wrapped to the
+    far side of the scan."""
     moved = np.any(xyz != grid_xyz(records, scales, offsets), axis=1)
     if moved.any():
-        ints = grid_ints(xyz[moved], scales, offsets).astype(np.int32)
+        ints = grid_ints(np.clip(xyz[moved], *box), scales, offsets).astype(np.int32)
         for axis, name in enumerate("XYZ"):
             records[name][moved] = ints[:, axis]
     return records
