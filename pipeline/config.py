@@ -77,7 +77,8 @@ class RunConfig:
         for name in ("tile_size", "overlap", "seam_tolerance"):
             value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0) or (name == "tile_size" and value <= 0):
-                raise PipelineError(f"--{name.replace('_', '-')} must be a positive number of metres, got {value!r}")
+                least = "a positive number of" if name == "tile_size" else "0 or more"
+                raise PipelineError(f"--{name.replace('_', '-')} must be {least} metres, got {value!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, numbers.Integral) or self.seed < 0:
             raise PipelineError(f"--seed must be a whole number, 0 or more, got {self.seed!r}")
         if int(self.in_process_points) < 0:

@@ -391,3 +391,11 @@ def test_projected_crs_runs(tmp_path):
     """Metres in a small range (a local grid, UTM near its origin) are not mistaken for degrees."""
     source = make_las(tmp_path / "utm.las", scattered(), crs=pyproj.CRS.from_epsg(32633))
     runs_exactly(tmp_path, source, 0.1)
+
+
+@pytest.mark.parametrize("args, words", [(("--tile-size", "0"), "--tile-size must be a positive number of metres"),
+                                         (("--overlap", "-1"), "--overlap must be 0 or more metres"),
+                                         (("--seam-tolerance", "-0.5"), "--seam-tolerance must be 0 or more metres")])
+def test_lengths_out_of_range_say_what_is_allowed(tmp_path, args, words):
+    """An overlap or seam tolerance of 0 is allowed (it runs): the message says so, not 'a positive number'."""
+    fails_cleanly(tmp_path, [make_las(tmp_path / "in.las", scattered())], words, args=("--ratio", "0.1", *args))
