@@ -117,3 +117,28 @@ def test_bad_levels_and_classes_get_one_line(tmp_path, street_scan, args, words)
     result = CliRunner().invoke(cli, ["run", str(street_scan), *args, "-o", str(tmp_path / "out.laz")])
     assert result.exit_code == 2 and words in result.stderr and len(result.stderr.strip().splitlines()) == 1
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_run_that_fails_in_its_last_level_leaves_no_level_and_its_rerun_resumes(tmp_path, street_scan, monkeypatch):
+    """A disk that fills while the last level is written: the levels written before it stayed in place, and the
+    re-run the error line advises was refused ('already exists'). All levels now go in place at once, or none."""
+    import errno
+
+    from pipeline.io import writers
+
+    write_las, calls = writers._write_las, []
+
+    def full_disk_on_the_third(path, *args, **kwargs):
+        calls.append(path)
+        if len(calls) == 3:
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return write_las(path, *args, **kwargs)
+
+    settings = dict(levels=(0.2, 0.1, 0.05), method="fps", workers=1)
+    with monkeypatch.context() as patched:
+        patched.setattr(writers, "_write_las", full_disk_on_the_third)
+        with pytest.raises(pipeline.PipelineError, match=r"out\.r0\.05\.laz: No space left on device .*resume"):
+            pipeline.run(street_scan, tmp_path / "out.laz", **settings)
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".out.laz.work-")) == []
+    report = pipeline.run(street_scan, tmp_path / "out.laz", **settings)  # the same command, as advised
+    assert report.resumed_tiles > 0 and len(report.levels) == 3

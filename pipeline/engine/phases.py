@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from concurrent.futures import Executor
+from contextlib import ExitStack
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable
@@ -296,17 +297,18 @@ def stitch_outputs(scan: Scan, outputs: list[Path], plan: TilePlan, results: dic
         rejections = seam_rejections(plan, results, budgets, config.seam_tolerance, on_tile=phase.update)
     written = []
     level = budgets
-    for path, ratio in zip(outputs, config.levels or (config.ratio,)):
-        # each level shared from the one before, not from the finest: a largest-remainder share is not monotone
-        # in its total (0.4 gave a tile 0 points where 0.3 gave it 1), and a level must be a subset of the last
-        level = nested_budgets(level, kept_count(ratio, thinned))
-        meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], ratio, config.method,
-                          __version__, settings, config.simplifier.trained_weights())
-        with progress.phase(f"write {path.name}", len(results), unit="tile") as phase:
-            parts = counted(level_parts(plan, results, budgets, level, rejections, scan.scales,
-                                                scan.offsets), phase,
-                            lambda part: len(part.records))
-            written.append(write_output(path, scan.header, int(level.sum()) + whole, parts, meta))
+    with ExitStack() as renamed:  # every level in place at once, or none
+        for path, ratio in zip(outputs, config.levels or (config.ratio,)):
+            # each level shared from the one before, not from the finest: a largest-remainder share is not
+            # monotone in its total (0.4 gave a tile 0 points where 0.3 gave it 1), and a level must be a subset
+            level = nested_budgets(level, kept_count(ratio, thinned))
+            meta = OutputMeta(crs_wkt(scan.header), [str(p) for p in scan.paths], ratio, config.method,
+                              __version__, settings, config.simplifier.trained_weights())
+            with progress.phase(f"write {path.name}", len(results), unit="tile") as phase:
+                parts = counted(level_parts(plan, results, budgets, level, rejections, scan.scales,
+                                            scan.offsets), phase,
+                                lambda part: len(part.records))
+                written.append(write_output(path, scan.header, int(level.sum()) + whole, parts, meta, renamed))
     return written
 
 

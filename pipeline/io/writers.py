@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import io
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Iterable, Iterator
 
@@ -26,8 +27,11 @@ def output_kind(path: Path) -> str | None:
     return next((kind for kind in OUTPUT_KINDS if name.endswith(kind)), None)
 
 
-def write_output(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[TilePart], meta: OutputMeta) -> int:
-    """Write the parts to path (by suffix) through a temporary name; return the points written.
+def write_output(path: Path, header: laspy.LasHeader, total: int, parts: Iterable[TilePart], meta: OutputMeta,
+                 renamed: ExitStack | None = None) -> int:
+    """Write the parts to path (by suffix) through a temporary name; return the points written. With `renamed`,
+    the temporary is renamed into place only when that stack closes, with every other output it holds (a run's
+    levels: one that fails in its last level leaves none, where it left the others, which its resume refused).
 
     A write that fails (a full disk) leaves nothing under either name and is reported against `path`.
     """
@@ -36,7 +40,8 @@ def write_output(path: Path, header: laspy.LasHeader, total: int, parts: Iterabl
         raise PipelineError(f"{path}: unsupported output type {path.suffix.lower() or '(none)'} "
                             f"(use {', '.join(OUTPUT_KINDS)})")
     try:
-        with atomic_output(path) as temporary:
+        with ExitStack() as own:
+            temporary = (renamed or own).enter_context(atomic_output(path))
             if kind == ".zarr":
                 from pipeline.io.zarr_output import write_zarr  # here: zarr's import is 0.25 s a LAS run never needs
 
