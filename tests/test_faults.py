@@ -148,3 +148,25 @@ def test_a_shared_scratch_keeps_the_folders_of_other_outputs_of_one_name(tmp_pat
     (other / "manifest.json").write_text(json.dumps({"output": str(first)}))
     pipeline.run(street_scan, second, ratio=0.1, method="random", workers=1, scratch=scratch)
     assert other.is_dir()
+
+
+def test_a_resume_needs_only_the_scratch_space_its_work_folder_does_not_hold_yet(tmp_path, street_scan, monkeypatch):
+    """A run stopped by a full scratch disk kept its work; once room was made, the re-run was refused, as its
+    space check counted the whole need again, where what the folder held would have let it finish. Compared here:
+    the space a resumed run asks the disk for, against a fresh run's."""
+    import pipeline
+    from pipeline.engine import preflight
+    from pipeline.engine.workdir import WorkDir
+
+    settings = dict(ratio=0.1, method="learned", workers=1)
+    with monkeypatch.context() as kept:  # an attempt that stopped once its work was done
+        kept.setattr(WorkDir, "remove", lambda self: None)
+        pipeline.run(street_scan, tmp_path / "out.laz", **settings)
+    (tmp_path / "out.laz").unlink()
+    [work] = tmp_path.glob(".out.laz.work-*")
+    held = sum(path.stat().st_size for path in work.rglob("*") if path.is_file())
+    needs = []
+    monkeypatch.setattr(preflight, "check_room", lambda folder, need, what, advice: needs.append(need))
+    pipeline.run(street_scan, tmp_path / "out.laz", **settings)  # resumed: its need less what it holds
+    pipeline.run(street_scan, tmp_path / "fresh.laz", **settings)  # afresh: the whole need
+    assert needs[1] - needs[0] == pytest.approx(held, rel=1e-9)

@@ -11,7 +11,7 @@ import numpy as np
 
 from pipeline.engine.threads import in_process, local_workers
 from pipeline.engine.worker_watch import WorkerWatch
-from pipeline.errors import PipelineError
+from pipeline.errors import PipelineError, file_system_error
 from pipeline.progress import Progress
 
 if TYPE_CHECKING:
@@ -107,11 +107,19 @@ def _map_on_cluster(client: Client, function: Callable, items: Sequence[Any], sh
                     raise PipelineError(f"{desc}: the workers running one task died again and again, most likely out "
                                         "of memory: raise --memory-limit or lower --max-tile-points (or --tile-size, "
                                         "if the run noted a sub-cell over that limit)") from None
-                raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
+                raise task_failure(desc, exc) from exc
             results[unfinished.pop(future)] = result
             phase.update(1, weight(result))
             submitted = top_up(submitted)
     return results
+
+
+def task_failure(desc: str, exc: Exception) -> PipelineError:
+    """The one line for a task's failure: a file-system error (a scratch disk that filled) as the system says it,
+    naming the file where it does; anything else with its type."""
+    if isinstance(exc, OSError):
+        return PipelineError(f"{desc}: {file_system_error(exc)}")
+    return PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}")
 
 
 def submission_order(items: Sequence[Any], cost: Callable[[Any], int] | None) -> np.ndarray:
@@ -158,7 +166,7 @@ def _map_here(pool: Executor, function: Callable, items: Sequence[Any], shared: 
                         lost.append(position)
                         continue
                     except Exception as exc:
-                        raise PipelineError(f"{desc} task failed: {type(exc).__name__}: {exc}") from exc
+                        raise task_failure(desc, exc) from exc
                     phase.update(1, weight(results[position]))
                 if lost:
                     losses += 1

@@ -126,9 +126,12 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
                 raise PipelineError(f"{path}: {exc}") from None
             check_room(path.parent, COPC_SPILL_COPIES * records, "the COPC writer's spill of the kept points",
                        "write .laz, or free space beside the output")
+    earlier = WorkDir.of_run(output, Path(scratch) if scratch else None, scan.paths,
+                             config.in_unit(length_unit(scan.header).metres))
     check_run(scan, config.allow_geographic, Path(scratch or output.parent),
               kept=int(kept * (1 + RESERVE_SHARE)),
-              surveyed=isinstance(config.simplifier, Fill), progress=progress or Progress())
+              surveyed=isinstance(config.simplifier, Fill), progress=progress or Progress(),
+              held=earlier.held_bytes())
     unit = length_unit(scan.header)
     settings = output_settings(config)  # what the output records: lengths in metres, as given
     config = config.in_unit(unit.metres)

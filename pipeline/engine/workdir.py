@@ -82,6 +82,11 @@ class WorkDir:
         self.path = path
 
     @classmethod
+    def of_run(cls, output: Path, scratch: Path | None, inputs: Sequence[Path], config: RunConfig) -> "WorkDir":
+        """The folder of this exact run, whether or not it exists yet."""
+        return cls((scratch or output.parent) / f".{output.name}.work-{run_key(inputs, config)}")
+
+    @classmethod
     def for_run(cls, output: Path, scratch: Path | None, inputs: Sequence[Path], config: RunConfig) -> "WorkDir":
         """The folder of this exact run, created with its manifest if it does not exist yet."""
         key = run_key(inputs, config)
@@ -190,6 +195,10 @@ class WorkDir:
         for path in dropped:
             path.unlink(missing_ok=True)
         return [path.name for path in dropped]
+
+    def held_bytes(self) -> int:
+        """What the folder holds on disk already (0 if it does not exist): a resumed run needs that much less."""
+        return sum(path.stat().st_size for path in self.path.rglob("*") if path.is_file()) if self.path.is_dir() else 0
 
     def has_results(self) -> bool:
         """Whether any piece, survey or tile finished: worth keeping for a resume."""
