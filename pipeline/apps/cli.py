@@ -118,7 +118,8 @@ def cli() -> None:
 @click.option("--thin-class", default=None, metavar="2",
               help="Thin only the points of these LAS classes; keep every other point.")
 @click.option("--output", "-o", type=click.Path(path_type=Path), default=None,
-              help="Output file: .las, .laz, .copc.laz (COPC 1.0) or .zarr. [default: ./<input>.simplified.laz]")
+              help="Output file: .las, .laz, .copc.laz (COPC 1.0) or .zarr. [default: ./<input>.simplified.laz, .las "
+                   "for a .las input]")
 @click.option("--method", "-m", type=click.Choice(METHODS), default=None, help="Simplifier. [default: learned]")
 @click.option("--param", "-p", "params", multiple=True, metavar="NAME=VALUE",
               help="A parameter of the method, e.g. -m voxel -p slack=0.05 (repeatable; README: Method parameters).")
