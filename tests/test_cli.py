@@ -10,6 +10,7 @@ from pathlib import Path
 import laspy
 import numpy as np
 import pytest
+import trimesh
 
 from tests.conftest import shared_file
 
@@ -249,3 +250,25 @@ def test_version_is_the_package_s_own_and_the_installed_metadata_agrees():
         assert version("lidar-simplify") == __version__
     except PackageNotFoundError:
         pytest.skip("lidar-simplify is not installed (run from a checkout on PYTHONPATH)")
+
+
+def test_training_checks_its_data_and_replaces_no_weights_unasked(tmp_path):
+    """The training commands wrote their weights over the package's own by default (their --out was the shipped
+    weights' path, relative to where the command ran), replaced any file unasked, trained on an empty folder
+    (and wrote untrained weights), and took --epochs 0 to a traceback. Each is now one line before any work."""
+    empty, meshes = tmp_path / "empty", tmp_path / "meshes"
+    empty.mkdir()
+    meshes.mkdir()
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    sphere.export(meshes / "ball0.off")
+    precious = tmp_path / "mine.pt"
+    precious.write_bytes(b"PK my weights")
+    for command, args, words in (
+            ("train", ["--data", str(empty)], "no mesh files"),
+            ("train-detail", ["--data", str(meshes), "--out", str(precious)], "already exists (pass --overwrite"),
+            ("train", ["--data", str(meshes), "--out", str(precious)], "already exists (pass --overwrite"),
+            ("train-detail", ["--data", str(meshes), "--out", str(tmp_path / "w.npz")], "the .pt file")):
+        assert_one_line_error(cli(command, *args, cwd=tmp_path), *words.split(" (")[:1])
+    assert precious.read_bytes() == b"PK my weights" and not (tmp_path / "tosca.pt").exists()
+    bad = cli("train", "--data", str(meshes), "--epochs", "0", cwd=tmp_path)
+    assert bad.returncode == 2 and "is not in the range x>=1" in bad.stderr and "Traceback" not in bad.stderr

@@ -115,3 +115,23 @@ def test_refined_points_stay_in_the_box_their_tile_s_picks_span(tmp_path):
             assert source[axis].min() <= np.min(out[axis]) and np.max(out[axis]) <= source[axis].max(), (name, axis)
     kept = {tuple(row) for row in np.column_stack([source.X, source.Y, source.Z]).tolist()}
     assert sum(tuple(row) not in kept for row in np.column_stack([out.X, out.Y, out.Z]).tolist()) > 300  # moved
+
+
+def test_weights_are_saved_together_or_not_at_all(tmp_path):
+    """A stop while train-detail saved (it wrote in place) left a truncated .pt beside the old .npz: now every
+    file of a save is written aside and renamed once all are written; a failure leaves the old ones."""
+    from model.learning.saving import saved_together
+
+    pt, npz = tmp_path / "w.pt", tmp_path / "w.npz"
+    pt.write_bytes(b"old pt")
+    npz.write_bytes(b"old npz")
+
+    def stopped(path):
+        path.write_bytes(b"half")
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        saved_together([(pt, lambda path: path.write_bytes(b"new pt")), (npz, stopped)])
+    assert pt.read_bytes() == b"old pt" and npz.read_bytes() == b"old npz" and sorted(tmp_path.iterdir()) == [npz, pt]
+    saved_together([(pt, lambda path: path.write_bytes(b"new pt")), (npz, lambda path: path.write_bytes(b"new"))])
+    assert pt.read_bytes() == b"new pt" and npz.read_bytes() == b"new"

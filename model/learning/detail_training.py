@@ -21,6 +21,7 @@ import trimesh
 
 from model.detail import descriptors, relative
 from model.learning.detail_net import DetailNet, export_weights
+from model.learning.saving import saved_together
 from model.meshes import list_meshes, load_mesh, mesh_name, stratified_split
 from model.rules import kept_count
 from model.selection import Tile
@@ -141,9 +142,8 @@ def train_detail(data: Path, out: Path, settings: DetailSettings = DetailSetting
             f"test correlation {scores['test_correlation']:.3f}")
     record = {"settings": asdict(settings), "train": train_names, "test": test_names, "history": history,
               "seconds": time.perf_counter() - started}
-    out.parent.mkdir(parents=True, exist_ok=True)
-    torch.save({"state_dict": net.state_dict(), "record": record}, out)
-    export_weights(net, out.with_suffix(".npz"))  # what the default method loads: no torch in its workers
+    saved_together([(out, lambda path: torch.save({"state_dict": net.state_dict(), "record": record}, path)),
+                    (out.with_suffix(".npz"), lambda path: export_weights(net, path))])  # what the default loads
     return record
 
 

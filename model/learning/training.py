@@ -18,6 +18,7 @@ from tqdm import tqdm
 
 from model.learning.losses import mean_curvature, total_loss
 from model.learning.network import LearnedSimplifier, knn_graph, normalise
+from model.learning.saving import saved_together
 from model.meshes import list_meshes, load_mesh, mesh_name, stratified_split
 
 CHECKPOINT_EVERY = 10  # epochs; a long run killed midway keeps its last checkpoint
@@ -99,7 +100,5 @@ def train(data: Path, out: Path, settings: TrainSettings, show_progress: bool = 
 
 def save_weights(out: Path, model: LearnedSimplifier, record: TrainRecord) -> None:
     """One small .pt file: the state dict and the training record (settings, split, losses)."""
-    out.parent.mkdir(parents=True, exist_ok=True)
-    temporary = out.with_name(out.name + ".tmp")
-    torch.save({"state_dict": model.state_dict(), "record": asdict(record)}, temporary)
-    temporary.replace(out)
+    saved_together([(out, lambda path: torch.save({"state_dict": model.state_dict(), "record": asdict(record)},
+                                                  path))])

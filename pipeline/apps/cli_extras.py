@@ -8,8 +8,11 @@ from pathlib import Path
 import click
 
 from pipeline.config import build_config
-from pipeline.errors import PipelineError
+from pipeline.errors import STOPS, PipelineError
 from pipeline.progress import Progress
+
+MIN_POINTS = 16  # vertices drawn per mesh per step: the network's 16-neighbour graph needs as many
+MAX_THREADS = 256  # torch threads: more only contend for the cores (100000 ran out of memory)
 
 
 @click.command("demo")
@@ -54,22 +57,27 @@ def demo_points(scan: Path) -> int | None:
 @click.command("train")
 @click.option("--data", type=click.Path(path_type=Path, file_okay=False), required=True,
               help="Folder of TOSCA-style meshes (.off, .off.gz, .obj, .ply); split 80/20 by pose within class.")
-@click.option("--out", type=click.Path(path_type=Path), default=Path("model/learning/weights/tosca.pt"),
-              show_default=True, help="Where to save the weights, with the split and the losses.")
-@click.option("--epochs", type=int, default=150, show_default=True, help="Passes over the training meshes.")
-@click.option("--points", type=int, default=2048, show_default=True, help="Vertices drawn per mesh per step.")
-@click.option("--curvature-weight", type=float, default=0.1, show_default=True, help="lambda of the CE term.")
-@click.option("--seed", type=int, default=0, show_default=True)
-@click.option("--threads", type=int, default=1, show_default=True, help="torch threads.")
+@click.option("--out", type=click.Path(path_type=Path), default=Path("tosca.pt"), show_default=True,
+              help="Where to save the weights (.pt), with the split and the losses.")
+@click.option("--epochs", type=click.IntRange(min=1), default=150, show_default=True,
+              help="Passes over the training meshes.")
+@click.option("--points", type=click.IntRange(min=MIN_POINTS), default=2048, show_default=True,
+              help="Vertices drawn per mesh per step.")
+@click.option("--curvature-weight", type=click.FloatRange(min=0), default=0.1, show_default=True,
+              help="lambda of the CE term.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--threads", type=click.IntRange(min=1, max=MAX_THREADS), default=1, show_default=True,
+              help="torch threads.")
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out.")
 def train_command(data: Path, out: Path, epochs: int, points: int, curvature_weight: float, seed: int,
-                  threads: int) -> None:
+                  threads: int, overwrite: bool) -> None:
     """Train the paper's network (`--method paper`) on meshes; CPU, about 20 s an epoch at defaults."""
+    check_training(data, [out], overwrite)
     import torch
 
     from model.learning.training import TrainSettings, train
 
-    if not data.is_dir():
-        raise PipelineError(f"{data}: no such folder of meshes")
+    raise_if_stopped()
     torch.set_num_threads(threads)
     record = train(data, out, TrainSettings(epochs=epochs, points=points, curvature_weight=curvature_weight,
                                             seed=seed), show_progress=sys.stderr.isatty(),
@@ -83,19 +91,47 @@ def train_command(data: Path, out: Path, epochs: int, points: int, curvature_wei
 @click.command("train-detail")
 @click.option("--data", type=click.Path(path_type=Path, file_okay=False), required=True,
               help="Folder of TOSCA-style meshes; the same 80/20 split by pose within class as `train`.")
-@click.option("--out", type=click.Path(path_type=Path), default=Path("model/learning/weights/detail.pt"),
-              show_default=True, help="Where to save the weights, with the split and the test scores.")
-@click.option("--epochs", type=int, default=12, show_default=True)
-@click.option("--views", type=int, default=3, show_default=True, help="Scanner views of each training mesh.")
-@click.option("--seed", type=int, default=0, show_default=True)
-def train_detail_command(data: Path, out: Path, epochs: int, views: int, seed: int) -> None:
+@click.option("--out", type=click.Path(path_type=Path), default=Path("detail.pt"), show_default=True,
+              help="Where to save the weights (.pt, with the split and the test scores; the .npz the default "
+                   "method reads goes beside it).")
+@click.option("--epochs", type=click.IntRange(min=1), default=12, show_default=True)
+@click.option("--views", type=click.IntRange(min=1), default=3, show_default=True,
+              help="Scanner views of each training mesh.")
+@click.option("--seed", type=click.IntRange(min=0), default=0, show_default=True)
+@click.option("--overwrite", is_flag=True, help="Replace an existing --out and its .npz.")
+def train_detail_command(data: Path, out: Path, epochs: int, views: int, seed: int, overwrite: bool) -> None:
     """Train the curvature-loss predictor of the default `learned` method (model/detail.py); about 4 min on 2 cores."""
+    check_training(data, [out, out.with_suffix(".npz")], overwrite)
     from model.learning.detail_training import DetailSettings, train_detail
 
-    if not data.is_dir():
-        raise PipelineError(f"{data}: no such folder of meshes")
+    raise_if_stopped()
     record = train_detail(data, out, DetailSettings(epochs=epochs, views_per_mesh=views, seed=seed),
                           log=lambda line: click.echo(line, err=True))
     last = record["history"][-1]
     click.echo(f"{out}: {len(record['train'])} training / {len(record['test'])} test meshes in "
                f"{record['seconds'] / 60:.1f} min; test correlation {last['test_correlation']:.3f}")
+
+
+def check_training(data: Path, outputs: list[Path], overwrite: bool) -> None:
+    """Before any training: a folder holding meshes (an empty one trained on nothing and wrote its untrained
+    weights), and weights files that replace nothing unasked (the defaults were the package's own weights'
+    paths, relative to where the command ran: from a checkout, they overwrote the shipped weights)."""
+    from model.meshes import MESH_SUFFIXES, list_meshes
+    from pipeline.io.output_guard import check_output
+
+    if not data.is_dir():
+        raise PipelineError(f"{data}: no such folder of meshes")
+    if not list_meshes(data):
+        raise PipelineError(f"{data}: no mesh files ({', '.join(MESH_SUFFIXES)}) to train on")
+    if outputs[0].suffix.lower() != ".pt":  # train-detail's .npz would have been written over its own record
+        raise PipelineError(f"{outputs[0]}: --out names the .pt file the weights and their record go to")
+    for path in outputs:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        check_output(path, [], overwrite, (path.suffix.lower(),))
+
+
+def raise_if_stopped() -> None:
+    """End here if a Ctrl-C came while the training modules were imported: trimesh's optional imports catch it,
+    and training went on for its whole length (the CLI's handler recorded it in STOPS all the same)."""
+    if STOPS:
+        raise type(STOPS[-1])()

@@ -14,7 +14,7 @@ from typing import Sequence
 from pipeline.errors import PipelineError
 
 SIGNATURES = {".las": b"LASF", ".laz": b"LASF", ".ply": b"ply", ".html": b"<!DOCTYPE html>",  # what a file we write
-              ".png": b"\x89PNG"}                                                                 # starts with
+              ".png": b"\x89PNG", ".pt": b"PK", ".npz": b"PK"}                             # starts with (zips: PK)
 ZARR_MARKERS = ("zarr.json", ".zgroup", ".zarray")  # a zarr v3 or v2 store holds one of these at its root
 
 
