@@ -260,7 +260,8 @@ def test_training_checks_its_data_and_replaces_no_weights_unasked(tmp_path):
     empty.mkdir()
     meshes.mkdir()
     sphere = trimesh.creation.icosphere(subdivisions=2)
-    sphere.export(meshes / "ball0.off")
+    for pose in ("ball0", "ball1"):
+        sphere.export(meshes / f"{pose}.off")
     precious = tmp_path / "mine.pt"
     precious.write_bytes(b"PK my weights")
     for command, args, words in (
@@ -270,5 +271,9 @@ def test_training_checks_its_data_and_replaces_no_weights_unasked(tmp_path):
             ("train-detail", ["--data", str(meshes), "--out", str(tmp_path / "w.npz")], "the .pt file")):
         assert_one_line_error(cli(command, *args, cwd=tmp_path), *words.split(" (")[:1])
     assert precious.read_bytes() == b"PK my weights" and not (tmp_path / "tosca.pt").exists()
+    sphere.export(empty / "ball0.off")  # one pose of its class: nothing left to train on
+    assert_one_line_error(cli("train-detail", "--data", str(empty), cwd=tmp_path), "two poses or more")
+    (meshes / "ball2.off.gz").write_bytes(b"\x1f\x8b\x08\x00 cut short")  # a truncated download
+    assert_one_line_error(cli("train", "--data", str(meshes), cwd=tmp_path), "ball2.off.gz: not a readable mesh")
     bad = cli("train", "--data", str(meshes), "--epochs", "0", cwd=tmp_path)
     assert bad.returncode == 2 and "is not in the range x>=1" in bad.stderr and "Traceback" not in bad.stderr

@@ -116,13 +116,20 @@ def check_training(data: Path, outputs: list[Path], overwrite: bool) -> None:
     """Before any training: a folder holding meshes (an empty one trained on nothing and wrote its untrained
     weights), and weights files that replace nothing unasked (the defaults were the package's own weights'
     paths, relative to where the command ran: from a checkout, they overwrote the shipped weights)."""
-    from model.meshes import MESH_SUFFIXES, list_meshes
+    from model.meshes import MESH_SUFFIXES, list_meshes, mesh_name, stratified_split
+    from pipeline.apps.mesh_mode import read_mesh
     from pipeline.io.output_guard import check_output
 
     if not data.is_dir():
         raise PipelineError(f"{data}: no such folder of meshes")
-    if not list_meshes(data):
+    meshes = list_meshes(data)
+    if not meshes:
         raise PipelineError(f"{data}: no mesh files ({', '.join(MESH_SUFFIXES)}) to train on")
+    if not all(stratified_split([mesh_name(path) for path in meshes])):
+        raise PipelineError(f"{data}: the split by pose within class left no training or no test mesh: give a "
+                            "class (a name before its pose number, as cat0, cat1) two poses or more")
+    for path in meshes:  # a bad file in one line naming it, before any training (a traceback or 'Aborted!')
+        read_mesh(path)
     if outputs[0].suffix.lower() != ".pt":  # train-detail's .npz would have been written over its own record
         raise PipelineError(f"{outputs[0]}: --out names the .pt file the weights and their record go to")
     for path in outputs:
