@@ -32,6 +32,9 @@ def test_outputs_carry_the_run_record(tmp_path):
     assert sum(v.user_id == PROVENANCE_USER_ID for v in again.vlrs) == 1
     record = read_provenance(again)
     assert record["method"] == "learned" and record["model_weights"].startswith("detail.npz:")
+    from pipeline.apps.scan_summary import format_summary, summarize
+    said = format_summary(summarize(tmp_path / "b.laz", count_points=False)).splitlines()[-1]
+    assert f"with learned (weights {record['model_weights']}) at ratio 0.5" in said  # the digest, not only in --json
 
     pipeline.run(tmp_path / "ft.las", tmp_path / "c.zarr", ratio=0.2, method="fps", workers=1)
     stored = zarr.open_group(str(tmp_path / "c.zarr"), mode="r").attrs["provenance"]

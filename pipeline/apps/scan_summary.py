@@ -102,7 +102,8 @@ def format_summary(summary: dict[str, Any]) -> str:
               f"VLRs:          {', '.join(summary['vlrs']) or 'none'}"]
     if summary["provenance"]:
         record = summary["provenance"]
-        lines.append(f"simplified:    by {record['software']} {record['version']} with {record['method']} "
+        weights = f" (weights {record['model_weights']})" if record.get("model_weights") else ""
+        lines.append(f"simplified:    by {record['software']} {record['version']} with {record['method']}{weights} "
                      f"at ratio {record['ratio']:g}")
     return "\n".join(lines)
 
