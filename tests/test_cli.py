@@ -277,3 +277,25 @@ def test_training_checks_its_data_and_replaces_no_weights_unasked(tmp_path):
     assert_one_line_error(cli("train", "--data", str(meshes), cwd=tmp_path), "ball2.off.gz: not a readable mesh")
     bad = cli("train", "--data", str(meshes), "--epochs", "0", cwd=tmp_path)
     assert bad.returncode == 2 and "is not in the range x>=1" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_a_training_stopped_after_a_checkpoint_says_where_it_is(tmp_path):
+    """A stop after the first checkpoint leaves a whole, part-trained .pt at --out (by design): the stop's line
+    says so, where it said only 'interrupted'."""
+    import signal
+    import time
+
+    meshes = tmp_path / "meshes"
+    meshes.mkdir()
+    for pose in ("ball0", "ball1"):
+        trimesh.creation.icosphere(subdivisions=2).export(meshes / f"{pose}.off")
+    out = tmp_path / "w.pt"
+    run = subprocess.Popen([sys.executable, "-m", "pipeline.apps.cli", "train", "--data", str(meshes), "--out",
+                            str(out), "--epochs", "1000", "--points", "64"], stderr=subprocess.PIPE, text=True)
+    while not out.exists():
+        assert run.poll() is None, run.stderr.read()
+        time.sleep(0.05)
+    run.send_signal(signal.SIGINT)
+    _, stderr = run.communicate(timeout=120)
+    assert run.returncode == 130 and stderr.strip().splitlines()[-1].startswith(f"pipeline: interrupted; {out} holds "
+                                                                               "the last checkpoint")

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from pipeline.config import build_config
-from pipeline.errors import STOPS, PipelineError
+from pipeline.errors import STOPS, Interrupted, PipelineError, signal_exit_code
 from pipeline.progress import Progress
 
 MIN_POINTS = 16  # vertices drawn per mesh per step: the network's 16-neighbour graph needs as many
@@ -75,13 +75,20 @@ def train_command(data: Path, out: Path, epochs: int, points: int, curvature_wei
     check_training(data, [out], overwrite)
     import torch
 
-    from model.learning.training import TrainSettings, train
+    from model.learning.training import CHECKPOINT_EVERY, TrainSettings, train
 
     raise_if_stopped()
     torch.set_num_threads(threads)
-    record = train(data, out, TrainSettings(epochs=epochs, points=points, curvature_weight=curvature_weight,
-                                            seed=seed), show_progress=sys.stderr.isatty(),
-                   log=lambda line: None if sys.stderr.isatty() else click.echo(line, err=True))
+    before = out.stat().st_mtime_ns if out.exists() else None
+    try:
+        record = train(data, out, TrainSettings(epochs=epochs, points=points, curvature_weight=curvature_weight,
+                                                seed=seed), show_progress=sys.stderr.isatty(),
+                       log=lambda line: None if sys.stderr.isatty() else click.echo(line, err=True))
+    except KeyboardInterrupt as exc:  # a checkpoint saved before the stop is a whole, part-trained file: say so
+        if out.exists() and out.stat().st_mtime_ns != before:
+            raise Interrupted(f"interrupted; {out} holds the last checkpoint (saved every {CHECKPOINT_EVERY} "
+                              "epochs: its record's history says how many ran)", signal_exit_code(exc)) from None
+        raise
     last = record.history[-1]
     click.echo(f"{out}: {len(record.train)} training / {len(record.test)} test meshes, {epochs} epochs in "
                f"{record.seconds / 60:.1f} min; final loss {last['loss']:.5f} (CD {last['chamfer']:.5f}, "
