@@ -135,7 +135,7 @@ def cli() -> None:
 @click.option("--workers", "-w", type=int, default=None, help="Dask worker processes. [default: 2]")
 @click.option("--memory-limit", default=None, help="Memory limit per worker, e.g. 2GB. [default: 2GB]")
 @click.option("--config", "-c", "config", default=None,
-              help=f"Preset ({', '.join(configs.preset_names())}) or TOML file; flags override it.")
+              help=f"Preset ({', '.join(configs.preset_names())}) or TOML file; flags override it. [default: default]")
 @click.option("--seed", type=int, default=None, help="Seed for the random choices. [default: 0]")
 @click.option("--scratch", type=click.Path(path_type=Path), default=None,
               help="Folder for temporary tiles. [default: the output's folder]")
@@ -186,7 +186,8 @@ def run_command(inputs: tuple[Path, ...], ratio: float | None, levels: str | Non
             if not quiet:
                 click.echo(mesh_report.summary())
             return
-        note_worker_cap(settings.workers, scheduler)
+        if not quiet:
+            note_worker_cap(settings.workers, scheduler)
         report = run_scan(list(inputs), output, settings, overwrite=overwrite, scratch=scratch,
                           progress=Progress.for_terminal(quiet, log_json), scheduler=scheduler, stop_grace_s=STOP_GRACE_S,
                           note=None if quiet or log_json else lambda line: click.echo(f"pipeline: note: {line}",
