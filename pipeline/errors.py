@@ -49,12 +49,19 @@ class Interrupted(KeyboardInterrupt):
 STOPS: list[KeyboardInterrupt] = []  # the Ctrl-C and SIGTERM this process got, as the CLI's handlers raised them
 
 
+def raise_if_stopped() -> None:
+    """Raise again the Ctrl-C or SIGTERM this process got, if any: a library may have swallowed it (trimesh's
+    optional imports catch BaseException) or turned it into an error of its own (see raise_stop_behind)."""
+    if STOPS:
+        raise type(STOPS[-1])() from None
+
+
 def raise_stop_behind(error: BaseException) -> None:
     """Raise the Ctrl-C or SIGTERM this process got, if any, in place of `error`: a stop raised in a Python method
     that a native library calls back (lazrs writing or reading through a Python file) comes back as that
     library's error ('IoError: Failed to call write'), which would end the run in a traceback."""
-    if STOPS and not is_fatal_signal(error):
-        raise type(STOPS[-1])() from None
+    if not is_fatal_signal(error):
+        raise_if_stopped()
 
 
 def signal_exit_code(exc: KeyboardInterrupt) -> int:

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 
 from pipeline.config import build_config
-from pipeline.errors import STOPS, Interrupted, PipelineError, signal_exit_code
+from pipeline.errors import Interrupted, PipelineError, raise_if_stopped, signal_exit_code
 from pipeline.progress import Progress
 
 MIN_POINTS = 16  # vertices drawn per mesh per step: the network's 16-neighbour graph needs as many
@@ -77,7 +77,7 @@ def train_command(data: Path, out: Path, epochs: int, points: int, curvature_wei
 
     from model.learning.training import CHECKPOINT_EVERY, TrainSettings, train
 
-    raise_if_stopped()
+    raise_if_stopped()  # a Ctrl-C while the imports above ran: trimesh swallows it, and training went on
     torch.set_num_threads(threads)
     before = out.stat().st_mtime_ns if out.exists() else None
     try:
@@ -111,7 +111,7 @@ def train_detail_command(data: Path, out: Path, epochs: int, views: int, seed: i
     check_training(data, [out, out.with_suffix(".npz")], overwrite)
     from model.learning.detail_training import DetailSettings, train_detail
 
-    raise_if_stopped()
+    raise_if_stopped()  # a Ctrl-C while the imports above ran: trimesh swallows it, and training went on
     record = train_detail(data, out, DetailSettings(epochs=epochs, views_per_mesh=views, seed=seed),
                           log=lambda line: click.echo(line, err=True))
     last = record["history"][-1]
@@ -142,10 +142,3 @@ def check_training(data: Path, outputs: list[Path], overwrite: bool) -> None:
     for path in outputs:
         path.parent.mkdir(parents=True, exist_ok=True)
         check_output(path, [], overwrite, (path.suffix.lower(),))
-
-
-def raise_if_stopped() -> None:
-    """End here if a Ctrl-C came while the training modules were imported: trimesh's optional imports catch it,
-    and training went on for its whole length (the CLI's handler recorded it in STOPS all the same)."""
-    if STOPS:
-        raise type(STOPS[-1])()

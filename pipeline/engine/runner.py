@@ -126,22 +126,21 @@ def run_scan(inputs: Sequence[str | Path], output: str | Path | None, config: Ru
                 raise PipelineError(f"{path}: {exc}") from None
             check_room(path.parent, COPC_SPILL_COPIES * records, "the COPC writer's spill of the kept points",
                        "write .laz, or free space beside the output")
-    earlier = WorkDir.of_run(output, Path(scratch) if scratch else None, scan.paths,
-                             config.in_unit(length_unit(scan.header).metres))
-    check_run(scan, config.allow_geographic, Path(scratch or output.parent),
-              kept=int(kept * (1 + RESERVE_SHARE)),
-              surveyed=isinstance(config.simplifier, Fill), progress=progress or Progress(),
-              held=earlier.held_bytes())
     unit = length_unit(scan.header)
     settings = output_settings(config)  # what the output records: lengths in metres, as given
     config = config.in_unit(unit.metres)
+    work = WorkDir.of_run(output, Path(scratch) if scratch else None, scan.paths, config)
+    check_run(scan, config.allow_geographic, Path(scratch or output.parent),
+              kept=int(kept * (1 + RESERVE_SHARE)),
+              surveyed=isinstance(config.simplifier, Fill), progress=progress or Progress(),
+              held=work.held_bytes())  # an earlier attempt's work needs no room again
     if note is not None and (said := unit_note(unit, crs_label(scan.header))):
         note(said)
     if kept == 0:
         raise PipelineError(f"{scan.paths[0]}: --ratio {config.ratio} keeps 0 of {scan.point_count} points")
     for path in outputs:
         remove_stale_temporaries(path)
-    work = WorkDir.for_run(output, Path(scratch) if scratch else None, scan.paths, config)
+    work.create(output, scan.paths, config)
     tell = note or (lambda line: None)
     with work.held():  # a second run of the same command is refused before it touches the folder
         if dropped := work.drop_damaged():

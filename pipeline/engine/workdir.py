@@ -89,14 +89,17 @@ class WorkDir:
     @classmethod
     def for_run(cls, output: Path, scratch: Path | None, inputs: Sequence[Path], config: RunConfig) -> "WorkDir":
         """The folder of this exact run, created with its manifest if it does not exist yet."""
-        key = run_key(inputs, config)
-        work = cls((scratch or output.parent) / f".{output.name}.work-{key}")
-        if not (work.path / MANIFEST).is_file():
-            work.path.mkdir(parents=True, exist_ok=True)
-            manifest = {"key": key, "output": str(output), "inputs": [str(p) for p in inputs],
-                        "settings": asdict(config)}
-            write_atomically(work.path / MANIFEST, lambda tmp: tmp.write_text(json.dumps(manifest, indent=2)))
+        work = cls.of_run(output, scratch, inputs, config)
+        work.create(output, inputs, config)
         return work
+
+    def create(self, output: Path, inputs: Sequence[Path], config: RunConfig) -> None:
+        """Make the folder, with its manifest, unless an earlier attempt did."""
+        if not (self.path / MANIFEST).is_file():
+            self.path.mkdir(parents=True, exist_ok=True)
+            manifest = {"key": self.path.name.rsplit("-", 1)[-1], "output": str(output),
+                        "inputs": [str(p) for p in inputs], "settings": asdict(config)}
+            write_atomically(self.path / MANIFEST, lambda tmp: tmp.write_text(json.dumps(manifest, indent=2)))
 
     @contextmanager
     def held(self) -> Iterator[None]:
